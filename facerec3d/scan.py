@@ -1,0 +1,212 @@
+"""`FaceScan`: the one data type that flows through facerec3d.
+
+A scan is a set of 3D points in millimetres. When it comes from a range
+scanner it also keeps the range-image row and column of each point (`grid`),
+so that pixel neighbours are known; grid triangulation, hole filling and
+spike removal use them. Every processing stage takes a scan and returns a
+new one; a scan is never modified in place.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ScanMeta:
+    """Who and what a scan is. Every field is optional."""
+
+    subject: str | None = None
+    scan_id: str | None = None
+    session: str | None = None
+    expression: str | None = None  # "neutral", "non-neutral" or a finer label
+    path: str | None = None  # the source file
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def replace(self, **changes: Any) -> "ScanMeta":
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True, eq=False)
+class FaceScan:
+    """A 3D face scan.
+
+    points:     (N, 3) float64, mm.
+    grid:       (N, 2) int32 range-image (row, column) of each point, or None.
+    grid_shape: (rows, columns) of that range image, or None.
+    normals:    (N, 3) float64 unit normals, or None.
+    colors:     (N, 3) uint8 RGB, or None.
+    landmarks:  name -> (3,) float64 position in mm (same frame as points).
+    meta:       identity and provenance.
+    """
+
+    points: np.ndarray
+    grid: np.ndarray | None = None
+    grid_shape: tuple[int, int] | None = None
+    normals: np.ndarray | None = None
+    colors: np.ndarray | None = None
+    landmarks: dict[str, np.ndarray] = field(default_factory=dict)
+    meta: ScanMeta = field(default_factory=ScanMeta)
+
+    def __post_init__(self) -> None:
+        pts = np.ascontiguousarray(self.points, dtype=np.float64).reshape(-1, 3)
+        object.__setattr__(self, "points", pts)
+        n = len(pts)
+        if self.grid is not None:
+            g = np.ascontiguousarray(self.grid, dtype=np.int32).reshape(-1, 2)
+            if len(g) != n:
+                raise ValueError(f"grid has {len(g)} rows for {n} points")
+            if self.grid_shape is None:
+                raise ValueError("grid given without grid_shape")
+            object.__setattr__(self, "grid", g)
+            object.__setattr__(self, "grid_shape", (int(self.grid_shape[0]), int(self.grid_shape[1])))
+        if self.normals is not None:
+            nrm = np.ascontiguousarray(self.normals, dtype=np.float64).reshape(-1, 3)
+            if len(nrm) != n:
+                raise ValueError(f"normals has {len(nrm)} rows for {n} points")
+            object.__setattr__(self, "normals", nrm)
+        if self.colors is not None:
+            col = np.ascontiguousarray(self.colors).reshape(-1, 3)
+            if len(col) != n:
+                raise ValueError(f"colors has {len(col)} rows for {n} points")
+            object.__setattr__(self, "colors", col)
+        object.__setattr__(
+            self, "landmarks", {k: np.asarray(v, dtype=np.float64).reshape(3) for k, v in self.landmarks.items()}
+        )
+
+    # ----------------------------------------------------------------- basics
+    def __len__(self) -> int:
+        return len(self.points)
+
+    @property
+    def n_points(self) -> int:
+        return len(self.points)
+
+    def replace(self, **changes: Any) -> "FaceScan":
+        """A copy with some fields changed (dataclasses.replace)."""
+        return dataclasses.replace(self, **changes)
+
+    def subset(self, index: np.ndarray) -> "FaceScan":
+        """The scan restricted to the points selected by a boolean mask or index array."""
+        index = np.asarray(index)
+        return self.replace(
+            points=self.points[index],
+            grid=None if self.grid is None else self.grid[index],
+            normals=None if self.normals is None else self.normals[index],
+            colors=None if self.colors is None else self.colors[index],
+        )
+
+    def transformed(self, rotation: np.ndarray, translation: np.ndarray) -> "FaceScan":
+        """The scan moved rigidly: x -> R x + t (points, normals and landmarks)."""
+        R = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+        t = np.asarray(translation, dtype=np.float64).reshape(3)
+        return self.replace(
+            points=self.points @ R.T + t,
+            normals=None if self.normals is None else self.normals @ R.T,
+            landmarks={k: R @ v + t for k, v in self.landmarks.items()},
+        )
+
+    def bounding_box(self) -> tuple[np.ndarray, np.ndarray]:
+        """(min, max) corners in mm."""
+        if not len(self.points):
+            raise ValueError("empty scan has no bounding box")
+        return self.points.min(axis=0), self.points.max(axis=0)
+
+    def resolution(self) -> float:
+        """Typical point spacing in mm: median distance to the nearest other point."""
+        if len(self.points) < 2:
+            return float("nan")
+        from scipy.spatial import cKDTree
+
+        sample = self.points
+        if len(sample) > 20000:
+            sample = sample[np.random.default_rng(0).choice(len(sample), 20000, replace=False)]
+        d, _ = cKDTree(self.points).query(sample, k=2)
+        return float(np.median(d[:, 1]))
+
+    # ------------------------------------------------------ range images
+    @classmethod
+    def from_range_image(
+        cls,
+        xyz: np.ndarray,
+        valid: np.ndarray | None = None,
+        colors: np.ndarray | None = None,
+        **fields: Any,
+    ) -> "FaceScan":
+        """A scan from an (H, W, 3) image of points in mm; `valid` (H, W) marks real pixels.
+
+        Pixels with a non-finite coordinate are invalid whatever `valid` says.
+        """
+        xyz = np.asarray(xyz, dtype=np.float64)
+        if xyz.ndim != 3 or xyz.shape[2] != 3:
+            raise ValueError(f"range image must be (H, W, 3), got {xyz.shape}")
+        ok = np.isfinite(xyz).all(axis=2)
+        if valid is not None:
+            ok &= np.asarray(valid, dtype=bool)
+        rows, cols = np.nonzero(ok)
+        return cls(
+            points=xyz[rows, cols],
+            grid=np.stack([rows, cols], axis=1),
+            grid_shape=xyz.shape[:2],
+            colors=None if colors is None else np.asarray(colors)[rows, cols],
+            **fields,
+        )
+
+    def to_range_image(self) -> tuple[np.ndarray, np.ndarray]:
+        """(xyz (H, W, 3) with NaN where invalid, valid (H, W) bool). Needs a grid."""
+        if self.grid is None or self.grid_shape is None:
+            raise ValueError("scan has no range-image grid")
+        h, w = self.grid_shape
+        xyz = np.full((h, w, 3), np.nan)
+        valid = np.zeros((h, w), dtype=bool)
+        xyz[self.grid[:, 0], self.grid[:, 1]] = self.points
+        valid[self.grid[:, 0], self.grid[:, 1]] = True
+        return xyz, valid
+
+    def index_image(self) -> np.ndarray:
+        """(H, W) int image holding each pixel's point index, -1 where there is none."""
+        if self.grid is None or self.grid_shape is None:
+            raise ValueError("scan has no range-image grid")
+        idx = np.full(self.grid_shape, -1, dtype=np.int64)
+        idx[self.grid[:, 0], self.grid[:, 1]] = np.arange(len(self.points))
+        return idx
+
+    # ------------------------------------------------------------- meshes
+    def triangles(self, max_edge: float | None = None) -> np.ndarray:
+        """Triangulate the range-image grid: (M, 3) point indices.
+
+        Each 2×2 block of valid pixels gives two triangles; a triangle with a
+        missing corner is skipped, and so is one with an edge longer than
+        `max_edge` mm (default: 4 × the scan resolution), which would bridge
+        a depth discontinuity.
+        """
+        idx = self.index_image()
+        a, b = idx[:-1, :-1], idx[:-1, 1:]
+        c, d = idx[1:, :-1], idx[1:, 1:]
+        tris = np.concatenate(
+            [np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)]
+        )
+        tris = tris[(tris >= 0).all(axis=1)]
+        if len(tris) == 0:
+            return tris.astype(np.int64)
+        if max_edge is None:
+            max_edge = 4.0 * self.resolution()
+        p = self.points
+        e = np.stack(
+            [
+                np.linalg.norm(p[tris[:, 0]] - p[tris[:, 1]], axis=1),
+                np.linalg.norm(p[tris[:, 1]] - p[tris[:, 2]], axis=1),
+                np.linalg.norm(p[tris[:, 2]] - p[tris[:, 0]], axis=1),
+            ],
+            axis=1,
+        )
+        return tris[(e <= max_edge).all(axis=1)].astype(np.int64)
+
+    def __repr__(self) -> str:
+        who = self.meta.scan_id or self.meta.path or "scan"
+        grid = f", grid {self.grid_shape[0]}x{self.grid_shape[1]}" if self.grid is not None else ""
+        return f"FaceScan({who}: {self.n_points} points{grid}, {len(self.landmarks)} landmarks)"
