@@ -1,0 +1,146 @@
+"""Datasets: the list of scans of a FRGC v2 directory, a Bosphorus directory or a manifest CSV.
+
+Real FRGC v2 and Bosphorus data are licence-gated: obtain them from their
+owners and point facerec3d at them in place; nothing is copied.
+
+- FRGC v2: `<subject>d<seq>.abs[.gz]` files; the subject is the text before
+  `d`, the session the `Spring2003range` / `Fall2003range` / `Spring2004range`
+  folder the file is in. FRGC file names carry no expression label: give one
+  with a manifest (a `manifest.csv` in the folder is used when present).
+- Bosphorus: `bsNNN_TYPE_SUB_k.bnt`; TYPE N is neutral, E / LFAU / UFAU / CAU
+  are expressions, YR / PR / CR are poses, O occlusions.
+- Manifest CSV: columns `path,subject` and optional `expression`
+  (`neutral` / `non-neutral` or a finer label), `role` (`gallery` / `probe`)
+  and `session`; relative paths are relative to the manifest's folder.
+"""
+
+from __future__ import annotations
+
+import csv
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from facerec3d.errors import FaceRec3DError
+
+FRGC_PATTERN = re.compile(r"^(?P<subject>\d+)d(?P<seq>\d+)\.abs(\.gz)?$", re.IGNORECASE)
+BOSPHORUS_PATTERN = re.compile(r"^(?P<subject>bs\d+)_(?P<type>[A-Z]+)_(?P<sub>[A-Za-z0-9]+)_(?P<k>\d+)\.bnt$", re.IGNORECASE)
+FRGC_SESSIONS = ("Spring2003range", "Fall2003range", "Spring2004range")
+BOSPHORUS_KINDS = {"N": "neutral", "E": "expression", "LFAU": "expression", "UFAU": "expression",
+                   "CAU": "expression", "YR": "pose", "PR": "pose", "CR": "pose", "O": "occlusion"}
+
+
+class DatasetError(FaceRec3DError):
+    """A dataset folder or manifest cannot be read."""
+
+
+@dataclass(frozen=True)
+class ScanRecord:
+    """One scan of a dataset: where it is and who it is.
+
+    expression: `neutral`, `non-neutral` or None when unknown.
+    kind:       `neutral`, `expression`, `pose`, `occlusion` or None (Bosphorus-style category).
+    label:      the finer label (Bosphorus TYPE_SUB, or a manifest's label).
+    """
+
+    path: Path
+    subject: str
+    scan_id: str
+    expression: str | None = None
+    kind: str | None = None
+    label: str | None = None
+    session: str | None = None
+    role: str | None = None
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """The scans of a dataset and the layout they were found in (`frgc`, `bosphorus`, `manifest`)."""
+
+    records: tuple[ScanRecord, ...]
+    layout: str
+    source: Path
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def __iter__(self):
+        return iter(self.records)
+
+    @property
+    def subjects(self) -> list[str]:
+        return sorted({r.subject for r in self.records})
+
+
+def open_dataset(source: str | Path) -> Dataset:
+    """The dataset at `source`: a manifest CSV, or a folder in FRGC or Bosphorus layout (auto-detected).
+
+    A folder holding `manifest.csv` is read through that manifest.
+    """
+    source = Path(source)
+    if source.is_file():
+        return read_manifest(source)
+    if not source.is_dir():
+        raise DatasetError(f"{source}: no such file or folder")
+    if (source / "manifest.csv").is_file():
+        return read_manifest(source / "manifest.csv")
+    files = sorted(p for p in source.rglob("*") if p.is_file())
+    frgc = [p for p in files if FRGC_PATTERN.match(p.name)]
+    bos = [p for p in files if BOSPHORUS_PATTERN.match(p.name)]
+    if frgc and len(frgc) >= len(bos):
+        return Dataset(tuple(_frgc_record(p) for p in frgc), "frgc", source)
+    if bos:
+        return Dataset(tuple(_bosphorus_record(p) for p in bos), "bosphorus", source)
+    raise DatasetError(f"{source}: no FRGC (<subject>d<seq>.abs) or Bosphorus (bsNNN_TYPE_SUB_k.bnt) scans found")
+
+
+def _frgc_record(path: Path) -> ScanRecord:
+    m = FRGC_PATTERN.match(path.name)
+    session = next((part for part in path.parts if part in FRGC_SESSIONS), None)
+    return ScanRecord(path, m["subject"], f"{m['subject']}d{m['seq']}", session=session)
+
+
+def _bosphorus_record(path: Path) -> ScanRecord:
+    m = BOSPHORUS_PATTERN.match(path.name)
+    kind = BOSPHORUS_KINDS.get(m["type"].upper())
+    expression = {"neutral": "neutral", "expression": "non-neutral"}.get(kind)
+    return ScanRecord(path, m["subject"], path.stem, expression, kind, f"{m['type']}_{m['sub']}")
+
+
+def read_manifest(path: str | Path) -> Dataset:
+    """A dataset from a manifest CSV (`path,subject[,expression][,role][,session][,label]`)."""
+    path = Path(path)
+    try:
+        with open(path, newline="") as f:
+            rows = list(csv.DictReader(f))
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise DatasetError(f"{path}: cannot read manifest ({e})") from None
+    if not rows or not {"path", "subject"} <= set(rows[0]):
+        raise DatasetError(f"{path}: a manifest needs a header with at least the columns path,subject")
+    records = []
+    for line, row in enumerate(rows, start=2):
+        if not row.get("path") or not row.get("subject"):
+            raise DatasetError(f"{path}, line {line}: empty path or subject")
+        p = Path(row["path"])
+        p = p if p.is_absolute() else path.parent / p
+        label = row.get("label") or row.get("expression") or None
+        expression = _expression_class(row.get("expression"))
+        role = (row.get("role") or "").strip().lower() or None
+        if role not in (None, "gallery", "probe"):
+            raise DatasetError(f"{path}, line {line}: role must be gallery or probe, not {role!r}")
+        kind = None if expression is None else ("neutral" if expression == "neutral" else "expression")
+        records.append(ScanRecord(p, row["subject"].strip(), _scan_id(p), expression, kind, label,
+                                  row.get("session") or None, role))
+    return Dataset(tuple(records), "manifest", path)
+
+
+def _expression_class(value: str | None) -> str | None:
+    """`neutral` / `non-neutral` from a manifest's expression column (any non-neutral label counts as such)."""
+    value = (value or "").strip().lower()
+    if not value:
+        return None
+    return "neutral" if value in ("neutral", "n", "blank") else "non-neutral"
+
+
+def _scan_id(path: Path) -> str:
+    return Path(path.name.removesuffix(".gz")).stem
