@@ -1,0 +1,158 @@
+"""The `facerec3d` command line."""
+
+from __future__ import annotations
+
+import csv
+import functools
+import sys
+from pathlib import Path
+
+import click
+import numpy as np
+
+from facerec3d.errors import FaceRec3DError
+
+
+def friendly(fn):
+    """Turn facerec3d's errors (and a few user errors) into one line and exit code 2, not a traceback."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except (FaceRec3DError, OSError, ValueError) as e:
+            click.echo(f"error: {e}", err=True)
+            sys.exit(2)
+
+    return wrapper
+
+
+@click.group()
+@click.version_option(package_name="facerec3d")
+def main():
+    """3D face recognition (Mian & Pears, '3D Face Recognition', 2012): scans, preprocessing, matching, evaluation."""
+
+
+@main.command()
+@click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@friendly
+def info(files):
+    """Size, valid points, bounding box and resolution (mm) of scan FILES."""
+    from facerec3d.io import load_scan
+
+    failed = 0
+    for f in files:
+        try:
+            s = load_scan(f)
+        except FaceRec3DError as e:
+            click.echo(f"{f}: error: {e.reason if hasattr(e, 'reason') else e}", err=True)
+            failed += 1
+            continue
+        lo, hi = s.bounding_box()
+        grid = f"{s.grid_shape[0]}x{s.grid_shape[1]} grid, " if s.grid is not None else ""
+        click.echo(f"{f}: {grid}{s.n_points} valid points, bbox [{lo[0]:.1f} {lo[1]:.1f} {lo[2]:.1f}] .. "
+                   f"[{hi[0]:.1f} {hi[1]:.1f} {hi[2]:.1f}] mm, resolution {s.resolution():.2f} mm"
+                   + (f", {len(s.landmarks)} landmarks" if s.landmarks else ""))
+    if failed:
+        sys.exit(2)
+
+
+@main.command()
+@click.argument("src", type=click.Path(dir_okay=False))
+@click.argument("dst", type=click.Path(dir_okay=False))
+@friendly
+def convert(src, dst):
+    """Convert scan SRC to DST (.abs, .abs.gz, .bnt, .ply, .npz; format from the name)."""
+    from facerec3d.io import load_scan, save_scan
+
+    save_scan(load_scan(src), dst)
+    click.echo(f"wrote {dst}")
+
+
+@main.command()
+@click.argument("out", type=click.Path(file_okay=False))
+@click.option("--subjects", default=20, show_default=True, help="Number of subjects.")
+@click.option("--scans", default=4, show_default=True, help="Scans per subject (the first is neutral and frontal).")
+@click.option("--format", "fmt", type=click.Choice(["abs", "bnt"]), default="abs", show_default=True,
+              help="FRGC (.abs.gz in nd1/<session>/) or Bosphorus (.bnt) layout.")
+@click.option("--seed", default=0, show_default=True)
+@click.option("--rows", default=480, show_default=True, help="Range image rows.")
+@click.option("--cols", default=640, show_default=True, help="Range image columns.")
+@friendly
+def synth(out, subjects, scans, fmt, seed, rows, cols):
+    """Write a synthetic dataset of range scans with ground truth to OUT."""
+    from facerec3d.datasets.synthetic import DatasetConfig, ScannerConfig, write_dataset
+
+    cfg = DatasetConfig(subjects=subjects, scans=scans, seed=seed,
+                        scanner=ScannerConfig(rows=rows, cols=cols, focal_px=1450.0 * cols / 640))
+    manifest = write_dataset(out, cfg, fmt, progress=True)
+    click.echo(f"wrote {subjects * scans} scans; manifest and ground truth: {manifest}")
+
+
+@main.command()
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="PNG to write.")
+@click.option("--preprocess/--raw", "with_face", default=True, show_default=True,
+              help="Also show the preprocessed face, with its detected landmarks.")
+@friendly
+def view(file, output, with_face):
+    """Render scan FILE (shaded depth) before and after preprocessing, landmarks marked, to a PNG."""
+    from facerec3d.io import load_scan
+    from facerec3d.preprocess import Preprocessor, gridify, landmarks_in_input_frame
+    from facerec3d.render import render
+
+    scan = gridify(load_scan(file))
+    panels = [(f"{Path(file).name} (raw)", scan)]
+    if with_face:
+        face = Preprocessor()(scan)
+        panels[0] = (panels[0][0], scan.replace(landmarks=landmarks_in_input_frame(face)))
+        panels.append(("preprocessed (frontal, 1 mm grid)", face))
+    render(panels, output)
+    click.echo(f"wrote {output}")
+
+
+LANDMARK_COLUMNS = ("nose_tip", "nose_bridge", "left_eye_inner", "right_eye_inner", "left_eye_outer",
+                    "right_eye_outer", "left_mouth_corner", "right_mouth_corner", "chin")
+
+
+@main.command()
+@click.argument("inputs", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("-o", "--out", "outdir", required=True, type=click.Path(file_okay=False))
+@click.option("--config", "config_file", type=click.Path(dir_okay=False), help="TOML or JSON preprocessing settings.")
+@click.option("--format", "fmt", type=click.Choice(["npz", "ply"]), default="npz", show_default=True)
+@click.option("--jobs", default=1, show_default=True, help="Processes to use.")
+@friendly
+def preprocess(inputs, outdir, config_file, fmt, jobs):
+    """Preprocess scans INPUTS into normalised faces in OUT, with OUT/landmarks.csv (chapter §8.5)."""
+    from tqdm import tqdm
+
+    from facerec3d.io import save_scan, scan_stem
+    from facerec3d.preprocess import PreprocessConfig, landmarks_in_input_frame
+    from facerec3d.preprocess.batch import preprocess_files
+
+    config = PreprocessConfig.load(config_file) if config_file else PreprocessConfig()
+    out = Path(outdir)
+    out.mkdir(parents=True, exist_ok=True)
+    header = ["scan", "status", "output"] + [f"{n}_{'xyz'[k]}" for n in LANDMARK_COLUMNS for k in range(3)]
+    failed = 0
+    with open(out / "landmarks.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(header)
+        bar = tqdm(preprocess_files(inputs, config, jobs), total=len(inputs), unit="scan", desc="preprocessing")
+        for outcome in bar:
+            if outcome.face is None:
+                failed += 1
+                tqdm.write(f"{outcome.path}: failed: {outcome.error}")
+                w.writerow([outcome.path, outcome.error, ""] + [""] * (len(header) - 3))
+                continue
+            target = out / f"{scan_stem(outcome.path)}.{fmt}"
+            save_scan(outcome.face, target)
+            lm = landmarks_in_input_frame(outcome.face)
+            coords = [f"{lm[n][k]:.3f}" if n in lm else "" for n in LANDMARK_COLUMNS for k in range(3)]
+            w.writerow([outcome.path, "ok", str(target)] + coords)
+            tqdm.write(f"{outcome.path}: kept -> {target}")
+    click.echo(f"{len(inputs) - failed} kept, {failed} failed; landmarks in {out / 'landmarks.csv'}")
+
+
+if __name__ == "__main__":
+    main()
