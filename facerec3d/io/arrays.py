@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,7 @@ LANDMARK_PREFIX = "landmark_"
 def _load(path: Path, loader):
     try:
         return loader(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as e:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, KeyError) as e:
         raise ScanFormatError(path, f"not a readable NumPy file ({e})") from None
 
 
@@ -59,7 +60,7 @@ def read_npz(path: str | Path) -> FaceScan:
             else:
                 raise ScanFormatError(path, "an .npz scan needs an 'xyz' or a 'points' array")
             landmarks = {k[len(LANDMARK_PREFIX):]: z[k] for k in z.files if k.startswith(LANDMARK_PREFIX)}
-        except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
             raise ScanFormatError(path, f"corrupt .npz ({e})") from None
     if any(np.shape(v) != (3,) for v in landmarks.values()):
         raise ScanFormatError(path, "landmarks must be 3-vectors")

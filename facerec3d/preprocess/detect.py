@@ -36,6 +36,7 @@ class DetectConfig:
     candidates: int = 4  # how many candidates are verified
     context_mm: float = 100.0  # points within this distance of a candidate are aligned
     min_inliers: float = 0.5  # least share of the scan points near the nose that fit the face model
+    tie_margin: float = 0.1  # a distinct placement this close to the best one also gets a full fit
     crop_radius_mm: float = 80.0  # the face is the sphere of this radius around the nose tip
     coarse: ModelFitConfig = field(default_factory=lambda: ModelFitConfig(
         identity_modes=0, expression_modes=False, iterations=15, start_distance_mm=20.0, end_distance_mm=5.0,
@@ -120,23 +121,26 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
     if scan.grid is None:
         raise ValueError("face detection needs a range-image grid (see preprocess.gridify)")
     sub, cands = nose_candidates(scan, config)
-    best: ModelFit | None = None
+    coarse: list[ModelFit] = []
     for i in cands:
         c = sub.points[i]
         near = sub.points[np.linalg.norm(sub.points - c, axis=1) <= config.context_mm]
-        if len(near) < 50:
-            continue
-        R0 = hotelling_rotation(near[np.linalg.norm(near - c, axis=1) <= 0.6 * config.context_mm])
-        fit = fit_face_model(near, R0, -R0 @ c, config.coarse)
-        if best is None or fit.inlier_fraction > best.inlier_fraction:
-            best = fit
-    if best is None or best.inlier_fraction < config.min_inliers:
-        why = "no face-like surface found" if best is None else (
-            f"no face fits: at best {best.inlier_fraction:.0%} of the points near a nose candidate fit a face")
+        if len(near) >= 50:
+            R0 = hotelling_rotation(near[np.linalg.norm(near - c, axis=1) <= 0.6 * config.context_mm])
+            coarse.append(fit_face_model(near, R0, -R0 @ c, config.coarse))
+    coarse.sort(key=lambda f: -f.inlier_fraction)
+    if not coarse or coarse[0].inlier_fraction < config.min_inliers:
+        why = "no face-like surface found" if not coarse else (
+            f"no face fits: at best {coarse[0].inlier_fraction:.0%} of the points near a nose candidate fit a face")
         raise FailureToAcquire(why, scan.meta.path)
-    nose0 = best.landmarks["nose_tip"]
-    near = scan.points[np.linalg.norm(scan.points - nose0, axis=1) <= config.context_mm]
-    fit = fit_face_model(near, best.R, best.t, config.model)
+    # the full fit decides between the best placement and a distinct one that fits almost as well
+    finalists = [coarse[0]] + [f for f in coarse[1:] if f.inlier_fraction >= coarse[0].inlier_fraction - config.tie_margin
+                               and np.linalg.norm(f.landmarks["nose_tip"] - coarse[0].landmarks["nose_tip"]) > config.separation_mm][:1]
+    fits = []
+    for f in finalists:
+        near = scan.points[np.linalg.norm(scan.points - f.landmarks["nose_tip"], axis=1) <= config.context_mm]
+        fits.append(fit_face_model(near, f.R, f.t, config.model))
+    fit = max(fits, key=lambda f: (f.inlier_fraction, -f.rms_mm))
     if fit.inlier_fraction < config.min_inliers:
         raise FailureToAcquire(f"the face model does not fit ({fit.inlier_fraction:.0%} of points)", scan.meta.path)
     return Detection(fit.landmarks["nose_tip"], fit.R, fit.t, fit.landmarks, fit.rms_mm, fit.inlier_fraction)

@@ -1,0 +1,126 @@
+"""Preprocessing accuracy against the generator's ground truth (chapter §8.5)."""
+
+import csv
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from scipy import ndimage
+
+from facerec3d import FaceScan, FailureToAcquire
+from facerec3d.cli import main
+from facerec3d.datasets.synthetic import EXPRESSIONS, FaceScanner, ScanSpec, quick_scan
+from facerec3d.geometry.transforms import rotation_angle
+from facerec3d.io import save_scan
+from facerec3d.preprocess import (
+    PreprocessConfig,
+    Preprocessor,
+    crop_sphere,
+    depth_map,
+    fill_holes,
+    landmarks_in_input_frame,
+    spike_mask,
+)
+from facerec3d.preprocess.batch import preprocess_files
+
+
+@pytest.fixture(scope="module")
+def posed():
+    """24 scans: yaw ±30°, pitch ±20°, roll ±10°, neutral and expressions, spikes, holes, neck and torso."""
+    rng = np.random.default_rng(2024)
+    scanner = FaceScanner(seed=7)
+    out = []
+    for i in range(24):
+        expression = "neutral" if i % 3 == 0 else EXPRESSIONS[i % len(EXPRESSIONS)]
+        spec = ScanSpec(i, expression, rng.uniform(0.5, 1.0), rng.uniform(-30, 30), rng.uniform(-20, 20),
+                        rng.uniform(-10, 10), seed=i)
+        truth = scanner.scan(spec)
+        out.append((truth, Preprocessor()(truth.scan)))
+    return out
+
+
+def test_nose_tip_error(posed):
+    err = np.array([np.linalg.norm(landmarks_in_input_frame(face)["nose_tip"] - t.landmarks["nose_tip"])
+                    for t, face in posed])
+    assert np.median(err) < 2.5
+    assert np.percentile(err, 99) < 10.0
+
+
+def test_pose_is_corrected_to_frontal(posed):
+    residual = [rotation_angle(np.asarray(face.meta.extra["to_frontal"])[:, :3] @ t.rotation) for t, face in posed]
+    assert np.median(residual) < 2.0
+    assert max(residual) < 6.0
+
+
+def test_output_is_a_frontal_face_on_a_uniform_grid(posed):
+    cfg = PreprocessConfig()
+    for _, face in posed[:4]:
+        z, valid = depth_map(face, cfg.resample)
+        assert z.shape == (161, 161)
+        assert np.linalg.norm(face.points, axis=1).max() <= cfg.crop_radius_mm + 1e-9
+        assert valid.sum() > 9000  # at least 90 cm² of face surface at 1 mm per cell
+        assert np.linalg.norm(face.landmarks["nose_tip"]) < 1e-6
+        assert z[80, 80] == pytest.approx(np.nanmax(z[70:91, 70:91]), abs=3.0)  # the nose tip protrudes
+
+
+def test_spikes_are_removed_and_good_points_kept():
+    caught = injected = good_lost = good = 0
+    for i in range(4):
+        s = quick_scan(i, EXPRESSIONS[i], yaw=[-30, 0, 20, 30][i], pitch=[10, -20, 0, 15][i], seed=i)
+        m = spike_mask(s.scan)
+        caught += (m & s.spike).sum()
+        injected += s.spike.sum()
+        good_lost += (m & ~s.spike).sum()
+        good += (~s.spike).sum()
+    assert caught / injected >= 0.95
+    assert good_lost / good < 0.005
+
+
+def test_filled_holes_match_the_true_surface():
+    sq, n = 0.0, 0
+    for i in range(4):
+        s = quick_scan(i, seed=i, noise_mm=0.0, spike_fraction=0.0, n_holes=4, hole_radius_mm=(2.0, 5.0))
+        face = crop_sphere(s.scan, s.landmarks["nose_tip"], 80.0)
+        filled = fill_holes(face)
+        new_grid = filled.grid[face.n_points:]
+        in_hole = s.hole[new_grid[:, 0], new_grid[:, 1]]
+        truth = s.clean_xyz[new_grid[in_hole, 0], new_grid[in_hole, 1]]
+        sq += ((filled.points[face.n_points:][in_hole] - truth) ** 2).sum()
+        n += in_hole.sum()
+        _, valid = face.to_range_image()
+        inside = ndimage.binary_fill_holes(valid) & s.hole
+        assert in_hole.sum() >= 0.9 * inside.sum()  # the enclosed injected holes were filled
+    assert n > 200
+    assert np.sqrt(sq / n) < 1.0
+
+
+def faceless_scans():
+    r, c = np.mgrid[0:120, 0:160].astype(float)
+    wall = np.stack([(c - 80) * 2.0, (60 - r) * 2.0, np.full(r.shape, -1500.0)], axis=-1)
+    rng = np.random.default_rng(3)
+    noise = np.stack([(c - 80) * 2.0, (60 - r) * 2.0, rng.uniform(-1500, -800, r.shape)], axis=-1)
+    empty = FaceScan(points=np.zeros((0, 3)), grid=np.zeros((0, 2)), grid_shape=(4, 4))
+    return {"wall": FaceScan.from_range_image(wall), "noise": FaceScan.from_range_image(noise), "empty": empty}
+
+
+@pytest.mark.parametrize("kind", ["wall", "noise", "empty"])
+def test_faceless_scans_are_failures_to_acquire(kind):
+    with pytest.raises(FailureToAcquire):
+        Preprocessor()(faceless_scans()[kind])
+
+
+def test_batch_reports_failures_by_name_and_goes_on(tmp_path):
+    good = tmp_path / "good.abs.gz"
+    save_scan(quick_scan(5).scan, good)
+    noise = tmp_path / "noise.abs"
+    save_scan(faceless_scans()["noise"], noise)
+    corrupt = tmp_path / "corrupt.abs"
+    corrupt.write_text("480 rows\n640 columns\npixels (flag X Y Z):\n1 1 1\n")
+    result = CliRunner().invoke(main, ["preprocess", str(corrupt), str(noise), str(good), "-o", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    rows = {r["scan"]: r for r in csv.DictReader(open(tmp_path / "out" / "landmarks.csv"))}
+    assert rows[str(good)]["status"] == "ok" and (tmp_path / "out" / "good.npz").is_file()
+    assert "expected" in rows[str(corrupt)]["status"]
+    assert rows[str(noise)]["status"] not in ("ok", "")
+    outcomes = list(preprocess_files([corrupt, good], jobs=2))
+    assert [o.face is None for o in outcomes] == [True, False]

@@ -1,0 +1,48 @@
+import numpy as np
+
+from facerec3d import FaceScan
+from facerec3d.geometry.transforms import rigid_fit, rotation_angle, rotation_from_euler
+from tests.conftest import cap_image
+
+
+def test_range_image_round_trip(cap):
+    xyz, valid = cap.to_range_image()
+    assert valid.sum() == cap.n_points == 12 * 16 - 3
+    back = FaceScan.from_range_image(xyz, valid)
+    np.testing.assert_array_equal(back.points, cap.points)
+    np.testing.assert_array_equal(back.grid, cap.grid)
+    assert np.isnan(xyz[5, 7]).all()
+
+
+def test_triangles_skip_invalid_pixels_and_long_edges():
+    scan = cap_image(invalid=())
+    full = scan.triangles()
+    assert len(full) == 2 * 11 * 15
+    holed = cap_image(invalid=((5, 7),))
+    assert len(holed.triangles()) == len(full) - 6  # an inner pixel touches six triangles
+    xyz, valid = scan.to_range_image()
+    xyz[:, 8:, 2] += 50.0  # a depth discontinuity between columns 7 and 8
+    stepped = FaceScan.from_range_image(xyz, valid)
+    assert len(stepped.triangles()) == len(full) - 2 * 11
+
+
+def test_transformed_moves_points_normals_and_landmarks(cap):
+    R = rotation_from_euler(20, -10, 5)
+    t = np.array([1.0, 2.0, 3.0])
+    scan = cap.replace(normals=np.tile([0, 0, 1.0], (cap.n_points, 1)), landmarks={"nose_tip": cap.points[0]})
+    moved = scan.transformed(R, t)
+    np.testing.assert_allclose(moved.points, cap.points @ R.T + t)
+    np.testing.assert_allclose(moved.normals[0], R @ [0, 0, 1.0])
+    np.testing.assert_allclose(moved.landmarks["nose_tip"], moved.points[0])
+
+
+def test_rigid_fit_recovers_motion_and_handles_reflection():
+    rng = np.random.default_rng(0)
+    P = rng.normal(size=(50, 3))
+    R = rotation_from_euler(15, 5, -7)
+    R2, t2 = rigid_fit(P, P @ R.T + [3, 2, 1])
+    assert rotation_angle(R2 @ R.T) < 1e-8
+    np.testing.assert_allclose(t2, [3, 2, 1], atol=1e-9)
+    # a mirrored target: the raw SVD solution has det -1; the fit must stay a rotation
+    R3, _ = rigid_fit(P, P * [1, 1, -1])
+    assert np.isclose(np.linalg.det(R3), 1.0)
