@@ -1,0 +1,27 @@
+from click.testing import CliRunner
+
+from facerec3d.cli import main
+
+
+def test_synth_info_convert_view(tmp_path):
+    run = CliRunner()
+    r = run.invoke(main, ["synth", str(tmp_path / "d"), "--subjects", "1", "--scans", "2", "--rows", "240", "--cols", "320"])
+    assert r.exit_code == 0, r.output
+    scan = next((tmp_path / "d").rglob("*.abs.gz"))
+    r = run.invoke(main, ["info", str(scan)])
+    assert r.exit_code == 0 and "240x320 grid" in r.output
+    r = run.invoke(main, ["convert", str(scan), str(tmp_path / "s.ply")])
+    assert r.exit_code == 0 and (tmp_path / "s.ply").stat().st_size > 0
+    r = run.invoke(main, ["view", str(scan), "-o", str(tmp_path / "v.png")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "v.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_bad_input_is_one_line_and_exit_code_2(tmp_path):
+    bad = tmp_path / "bad.bnt"
+    bad.write_bytes(b"\x01\x02")
+    r = CliRunner().invoke(main, ["info", str(bad)])
+    assert r.exit_code == 2
+    assert "bad.bnt" in r.output and "Traceback" not in r.output
+    r = CliRunner().invoke(main, ["convert", str(bad), str(tmp_path / "x.ply")])
+    assert r.exit_code == 2 and "truncated header" in r.output
