@@ -35,7 +35,9 @@ class DetectConfig:
     separation_mm: float = 25.0  # candidates are local maxima over this distance
     candidates: int = 4  # how many candidates are verified
     context_mm: float = 100.0  # points within this distance of a candidate are aligned
-    min_inliers: float = 0.5  # least share of the scan points near the nose that fit the face model
+    min_coarse_inliers: float = 0.3  # least share of points near a candidate fitting the mean face (rigid)
+    min_inliers: float = 0.5  # least share of the scan points near the nose that fit the full face model
+    max_nose_gap_mm: float = 3.0  # the fitted nose tip must lie this near a scan point
     tie_margin: float = 0.1  # a distinct placement this close to the best one also gets a full fit
     crop_radius_mm: float = 80.0  # the face is the sphere of this radius around the nose tip
     coarse: ModelFitConfig = field(default_factory=lambda: ModelFitConfig(
@@ -129,7 +131,7 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
             R0 = hotelling_rotation(near[np.linalg.norm(near - c, axis=1) <= 0.6 * config.context_mm])
             coarse.append(fit_face_model(near, R0, -R0 @ c, config.coarse))
     coarse.sort(key=lambda f: -f.inlier_fraction)
-    if not coarse or coarse[0].inlier_fraction < config.min_inliers:
+    if not coarse or coarse[0].inlier_fraction < config.min_coarse_inliers:
         why = "no face-like surface found" if not coarse else (
             f"no face fits: at best {coarse[0].inlier_fraction:.0%} of the points near a nose candidate fit a face")
         raise FailureToAcquire(why, scan.meta.path)
@@ -143,6 +145,9 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
     fit = max(fits, key=lambda f: (f.inlier_fraction, -f.rms_mm))
     if fit.inlier_fraction < config.min_inliers:
         raise FailureToAcquire(f"the face model does not fit ({fit.inlier_fraction:.0%} of points)", scan.meta.path)
+    gap = np.linalg.norm(scan.points - fit.landmarks["nose_tip"], axis=1).min()
+    if gap > config.max_nose_gap_mm:
+        raise FailureToAcquire(f"no nose: the fitted nose tip is {gap:.0f} mm from the surface", scan.meta.path)
     return Detection(fit.landmarks["nose_tip"], fit.R, fit.t, fit.landmarks, fit.rms_mm, fit.inlier_fraction)
 
 

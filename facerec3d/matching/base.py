@@ -1,0 +1,116 @@
+"""The matcher interface shared by ICP (§8.6), PCA (§8.7), LDA (§8.8) and curvature matchers.
+
+Scikit-learn-like and small:
+
+    matcher.fit(training_scans, subjects)          # learnt matchers only
+    gallery = [matcher.enroll(scan) for scan in gallery_scans]
+    probe = matcher.prepare(scan)                  # optional: done by score() when given a FaceScan
+    matcher.identify(probe, gallery, k=5)          # [(gallery index, score), ...] best first
+    matcher.verify(probe, gallery[i], threshold)   # score >= threshold
+
+Scores are similarities: higher means more alike (ICP gives −MSE in mm²).
+A `Template` is what a matcher keeps of a scan; it saves to .npz without
+pickle.
+"""
+
+from __future__ import annotations
+
+import json
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from os import PathLike
+from typing import Any
+
+import numpy as np
+
+from facerec3d.scan import FaceScan
+
+#: Relative score difference under which two scores count as tied (then the tiebreak decides).
+TIE_TOLERANCE = 1e-9
+
+_META_KEY = "__template__"
+
+
+@dataclass(eq=False)
+class Template:
+    """A matcher's representation of one scan: named arrays plus JSON-able attributes."""
+
+    subject: str | None
+    scan_id: str | None
+    method: str
+    arrays: dict[str, np.ndarray] = field(default_factory=dict)
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the arrays."""
+        return sum(int(a.nbytes) for a in self.arrays.values())
+
+    def save(self, path: str | PathLike) -> None:
+        """Write to an .npz file at exactly `path`: the arrays and a JSON string with the rest."""
+        if _META_KEY in self.arrays:
+            raise ValueError(f"array name {_META_KEY!r} is reserved")
+        meta = json.dumps({"subject": self.subject, "scan_id": self.scan_id, "method": self.method, "attrs": self.attrs})
+        with open(path, "wb") as f:
+            np.savez(f, **self.arrays, **{_META_KEY: np.array(meta)})
+
+    @classmethod
+    def load(cls, path: str | PathLike) -> "Template":
+        """Read a template written by `save` (no pickle)."""
+        with np.load(path, allow_pickle=False) as data:
+            meta = json.loads(str(data[_META_KEY]))
+            arrays = {name: data[name] for name in data.files if name != _META_KEY}
+        return cls(meta["subject"], meta["scan_id"], meta["method"], arrays, meta["attrs"])
+
+
+def rank(scores: np.ndarray, tiebreak: np.ndarray | None = None, tolerance: float = TIE_TOLERANCE) -> np.ndarray:
+    """Indices ordering scores best (highest) first; near-ties (relative difference < tolerance) go to the larger tiebreak."""
+    s = np.asarray(scores, dtype=np.float64)
+    order = np.argsort(-s, kind="stable")
+    if tiebreak is None or len(s) < 2:
+        return order
+    a, b = s[order[:-1]], s[order[1:]]
+    with np.errstate(invalid="ignore"):
+        tied = (a == b) | (np.abs(a - b) < tolerance * np.maximum(np.abs(a), np.abs(b)))
+    group = np.concatenate([[0], np.cumsum(~tied)])
+    return order[np.lexsort((-np.asarray(tiebreak, dtype=np.float64)[order], group))]
+
+
+class Matcher(ABC):
+    """Base class of face matchers. Subclasses set `name` and implement `enroll` and `score`."""
+
+    name: str = "matcher"
+
+    def fit(self, scans: Sequence[FaceScan], subjects: Sequence[str]) -> "Matcher":
+        """Learn from training scans (PCA, LDA); matchers that learn nothing return self."""
+        return self
+
+    @abstractmethod
+    def enroll(self, scan: FaceScan) -> Template:
+        """The gallery template of a scan, with whatever search structures matching needs."""
+
+    def prepare(self, scan: FaceScan) -> Any:
+        """The probe-side representation of a scan (by default its gallery template)."""
+        return self.enroll(scan)
+
+    def _probe(self, probe: FaceScan | Any) -> Any:
+        return self.prepare(probe) if isinstance(probe, FaceScan) else probe
+
+    @abstractmethod
+    def score(self, probe: FaceScan | Any, template: Template) -> float:
+        """Similarity of a probe (scan or prepared) to a template; higher is more similar."""
+
+    def scores(self, probe: FaceScan | Any, templates: Sequence[Template]) -> tuple[np.ndarray, np.ndarray | None]:
+        """(scores (n,), tiebreak (n,) or None) of a probe against many templates."""
+        p = self._probe(probe)
+        return np.array([self.score(p, t) for t in templates], dtype=np.float64), None
+
+    def identify(self, probe: FaceScan | Any, gallery: Sequence[Template], k: int = 5) -> list[tuple[int, float]]:
+        """The k best gallery entries as (index, score), best first; near-ties broken by the larger tiebreak."""
+        s, tiebreak = self.scores(probe, gallery)
+        return [(int(i), float(s[i])) for i in rank(s, tiebreak)[:k]]
+
+    def verify(self, probe: FaceScan | Any, template: Template, threshold: float) -> bool:
+        """Accept the claimed identity when the score reaches the threshold."""
+        return bool(self.score(probe, template) >= threshold)
