@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import functools
+import os
 import sys
 from pathlib import Path
 
@@ -152,6 +153,76 @@ def preprocess(inputs, outdir, config_file, fmt, jobs):
             w.writerow([outcome.path, "ok", str(target)] + coords)
             tqdm.write(f"{outcome.path}: kept -> {target}")
     click.echo(f"{len(inputs) - failed} kept, {failed} failed; landmarks in {out / 'landmarks.csv'}")
+
+
+def _print_metrics(m: dict) -> None:
+    from facerec3d.evaluation.report import format_value
+
+    keys = ("rank1", "rank5", "eer", "vr_at_far_0.001", "vr_at_far_0.01")
+    click.echo(f"{'probes':<14}{'n':>6}{'FTA':>6}" + "".join(f"{k:>17}" for k in keys))
+    rows = [("all", m)] + list(m.get("subsets", {}).items())
+    for name, r in rows:
+        click.echo(f"{name:<14}{r['n_probes']:>6}{r['failures']:>6}" + "".join(f"{format_value(k, r.get(k)):>17}" for k in keys))
+    t = m.get("timings", {})
+    click.echo(f"gallery {m['n_gallery']}, failures to enrol {m.get('failures_to_enrol', 0)}; "
+               f"preprocess {t.get('preprocess_s', 0):.1f} s, enrol {t.get('enrol_s', 0):.1f} s, "
+               f"match {t.get('match_s', 0):.1f} s ({t.get('match_ms', 0):.1f} ms per comparison)")
+    for f in m.get("failed_scans", []):
+        click.echo(f"failed ({f['role']}): {f['path']}: {f['reason']}")
+
+
+@main.command()
+@click.argument("data", type=click.Path(exists=True))
+@click.option("--method", default="icp", show_default=True, help="Matching method.")
+@click.option("--out", "out", required=True, type=click.Path(file_okay=False), help="Run folder to write.")
+@click.option("--protocol", type=click.Choice(["frgc", "bosphorus", "roles", "all-vs-all"]),
+              help="Default: from the dataset (Bosphorus folder, manifest roles, else FRGC).")
+@click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", help="Processes to use.")
+@click.option("--config", "config_file", type=click.Path(dir_okay=False), help="TOML or JSON preprocessing settings.")
+@click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
+@friendly
+def evaluate(data, method, out, protocol, jobs, config_file, cache):
+    """Evaluate a method on DATA (FRGC or Bosphorus folder, or manifest CSV): metrics, scores, plots, report."""
+    from facerec3d.evaluation.run import DEFAULT_CACHE, evaluate as run
+    from facerec3d.preprocess import PreprocessConfig
+
+    config = PreprocessConfig.load(config_file) if config_file else PreprocessConfig()
+    m = run(data, method, out, protocol, jobs, cache or DEFAULT_CACHE, config)
+    _print_metrics(m)
+    click.echo(f"report: {Path(out) / 'report.html'}")
+
+
+@main.command()
+@click.argument("runs", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False))
+@click.option("--out", "out", default="compare", show_default=True, type=click.Path(file_okay=False))
+@friendly
+def compare(runs, out):
+    """Overlay several evaluation runs' ROC, DET and CMC curves, with one table."""
+    from facerec3d.evaluation.compare import compare_runs
+
+    compare_runs(list(runs), out)
+    click.echo(f"wrote {Path(out) / 'compare.html'}")
+
+
+@main.command()
+@click.option("--subjects", default=30, show_default=True)
+@click.option("--scans", default=4, show_default=True, help="Scans per subject: neutral gallery, neutral, expression, ±25° yaw.")
+@click.option("--out", "out", default="demo-out", show_default=True, type=click.Path(file_okay=False))
+@click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores")
+@click.option("--seed", default=0, show_default=True)
+@friendly
+def demo(subjects, scans, out, jobs, seed):
+    """The main job: synthesise a FRGC-style dataset, evaluate ICP on it, print the metrics and the report's path."""
+    from facerec3d.datasets.synthetic import DatasetConfig, write_dataset
+    from facerec3d.evaluation.run import evaluate as run
+
+    out = Path(out)
+    data = out / "data"
+    if not (data / "manifest.csv").is_file():
+        write_dataset(data, DatasetConfig(subjects=subjects, scans=scans, seed=seed), "abs", progress=True)
+    m = run(data, "icp", out / "icp", None, jobs, out / "cache")
+    _print_metrics(m)
+    click.echo(f"report: {out / 'icp' / 'report.html'}")
 
 
 if __name__ == "__main__":

@@ -1,11 +1,15 @@
-"""Preprocessing many files: in parallel processes, with failures recorded rather than raised.
+"""Preprocessing many files: in parallel processes, with failures recorded rather than raised, and cached.
 
 A failure to acquire (ISO/IEC 19795-1: unreadable file, no face found) is
-reported with its reason and the batch goes on.
+reported with its reason and the batch goes on. With a cache folder, each
+result (face or failure) is kept under a key made of the file's path, size,
+modification time and the whole preprocessing configuration, so a rerun or a
+second method reuses the work.
 """
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -25,24 +29,48 @@ class Outcome:
     error: str | None = None
 
 
-def preprocess_file(path: str | Path, config: PreprocessConfig = PreprocessConfig()) -> Outcome:
+def cache_key(path: str | Path, config: PreprocessConfig) -> str:
+    """The cache key of a file under a configuration (path, size, mtime and settings)."""
+    p = Path(path).resolve()
+    st = p.stat()
+    text = f"{p}|{st.st_size}|{st.st_mtime_ns}|{config.fingerprint()}"
+    return hashlib.sha1(text.encode()).hexdigest()
+
+
+def preprocess_file(path: str | Path, config: PreprocessConfig = PreprocessConfig(),
+                    cache: str | Path | None = None) -> Outcome:
     """Load and preprocess one scan file; errors of facerec3d become a failed Outcome."""
-    from facerec3d.io import load_scan
+    from facerec3d.io import load_scan, save_scan, scan_stem
 
+    stored = None
+    if cache is not None and Path(path).is_file():
+        stored = Path(cache) / cache_key(path, config)
+        if stored.with_suffix(".npz").is_file():
+            face = load_scan(stored.with_suffix(".npz"))
+            return Outcome(str(path), face.replace(meta=face.meta.replace(path=str(path), scan_id=scan_stem(path))))
+        if stored.with_suffix(".fail").is_file():
+            return Outcome(str(path), None, stored.with_suffix(".fail").read_text())
     try:
-        return Outcome(str(path), Preprocessor(config)(load_scan(path)))
+        outcome = Outcome(str(path), Preprocessor(config)(load_scan(path)))
     except FaceRec3DError as e:
-        return Outcome(str(path), None, getattr(e, "reason", str(e)))
+        outcome = Outcome(str(path), None, getattr(e, "reason", str(e)))
+    if stored is not None:
+        stored.parent.mkdir(parents=True, exist_ok=True)
+        if outcome.face is not None:
+            save_scan(outcome.face, stored.with_suffix(".npz"))
+        else:
+            stored.with_suffix(".fail").write_text(outcome.error)
+    return outcome
 
 
-def _run(args: tuple[str, PreprocessConfig]) -> Outcome:
+def _run(args: tuple[str, PreprocessConfig, str | None]) -> Outcome:
     return preprocess_file(*args)
 
 
 def preprocess_files(paths: Sequence[str | Path], config: PreprocessConfig = PreprocessConfig(),
-                     jobs: int = 1) -> Iterator[Outcome]:
-    """Outcomes in the order of `paths`, computed by `jobs` processes."""
-    work = [(str(p), config) for p in paths]
+                     jobs: int = 1, cache: str | Path | None = None) -> Iterator[Outcome]:
+    """Outcomes in the order of `paths`, computed by `jobs` processes (reusing `cache` when given)."""
+    work = [(str(p), config, None if cache is None else str(cache)) for p in paths]
     if jobs <= 1 or len(work) <= 1:
         yield from map(_run, work)
         return
