@@ -1,0 +1,98 @@
+"""End-to-end evaluation on a small synthetic FRGC-style dataset (chapter §8.4)."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from facerec3d.cli import main
+from facerec3d.datasets.catalog import open_dataset
+from facerec3d.datasets.synthetic import DatasetConfig, ScannerConfig, write_dataset
+from facerec3d.evaluation.protocols import split
+from facerec3d.evaluation.run import evaluate
+from facerec3d.evaluation.scorefile import read_score_rows
+from facerec3d.io import save_scan
+from tests.test_preprocess import faceless_scans
+
+SMALL = ScannerConfig(rows=320, cols=400, focal_px=1000.0)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("frgc")
+    manifest = write_dataset(root, DatasetConfig(subjects=8, scans=4, seed=5, scanner=SMALL), "abs")
+    bad = root / "nd1" / "Fall2003range"
+    bad.mkdir(parents=True, exist_ok=True)
+    (bad / "04200d900.abs.gz").write_bytes(b"\x1f\x8b garbage")
+    save_scan(faceless_scans()["wall"], bad / "04201d901.abs")
+    with open(manifest, "a", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["nd1/Fall2003range/04200d900.abs.gz", "04200", "neutral"])
+        w.writerow(["nd1/Fall2003range/04201d901.abs", "04201", "non-neutral"])
+    return root
+
+
+@pytest.fixture(scope="module")
+def runs(dataset, tmp_path_factory):
+    out = tmp_path_factory.mktemp("runs")
+    cache = out / "cache"
+    one = evaluate(dataset, "icp", out / "one", jobs=1, cache=cache, progress=False)
+    two = evaluate(dataset, "icp", out / "two", jobs=2, cache=cache, progress=False)
+    return out, one, two
+
+
+def test_frgc_protocol_split(dataset):
+    ds = open_dataset(dataset)
+    sp = split(ds)
+    assert sp.protocol == "frgc" and len(sp.gallery) == 8
+    assert all(ds.records[i].expression == "neutral" for i in sp.gallery)
+    assert len(sp.probes) == len(ds) - 8
+    assert set(sp.subsets) == {"neutral", "non-neutral"}
+
+
+def test_identification_and_verification_on_neutral_probes(runs):
+    _, m, _ = runs
+    assert m["subsets"]["neutral"]["rank1"] == 1.0
+    assert m["rank1"] >= 0.9
+    assert m["eer"] < 0.1
+    assert m["n_gallery"] == 8
+
+
+def test_failures_are_listed_and_counted(runs):
+    _, m, _ = runs
+    failed = {f["path"].rsplit("/", 1)[-1]: f["reason"] for f in m["failed_scans"]}
+    assert set(failed) == {"04200d900.abs.gz", "04201d901.abs"}
+    assert m["failures"] == 2 and m["n_probes"] == m["n_processed"] + 2
+    assert m["rank1_all"] < m["rank1"] or m["rank1"] == 0
+
+
+def test_jobs_do_not_change_results(runs):
+    _, one, two = runs
+    for key in ("rank1", "rank5", "eer", "vr_at_far_0.001", "vr_at_far_0.01", "n_probes", "failures"):
+        assert one[key] == two[key]
+    assert one["subsets"] == two["subsets"]
+
+
+def test_run_folder_contents(runs):
+    out, m, _ = runs
+    run = out / "one"
+    for name in ("metrics.json", "scores.txt", "roc.png", "det.png", "cmc.png", "scores_hist.png", "report.html"):
+        assert (run / name).is_file(), name
+    rows = read_score_rows(run / "scores.txt")
+    assert len(rows.score) == m["n_processed"] * m["n_gallery"]
+    assert json.loads((run / "metrics.json").read_text())["method"] == "icp"
+
+
+def test_cli_evaluate_and_compare(dataset, runs, tmp_path):
+    out, _, _ = runs
+    r = CliRunner().invoke(main, ["evaluate", str(dataset), "--out", str(tmp_path / "cli"), "--jobs", "1",
+                                  "--cache", str(out / "cache")])
+    assert r.exit_code == 0, r.output
+    assert "non-neutral" in r.output and "failed (probe)" in r.output
+    r = CliRunner().invoke(main, ["compare", str(out / "one"), str(tmp_path / "cli"), "--out", str(tmp_path / "cmp")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "cmp" / "compare.html").is_file()
+    r = CliRunner().invoke(main, ["evaluate", str(tmp_path / "nothing-here.csv"), "--out", str(tmp_path / "x")])
+    assert r.exit_code == 2
