@@ -1,129 +1,344 @@
+"""Scan readers and writers: exact round trips, hand-made files of known content, bad input."""
+
 import gzip
 import struct
+import time
 
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from plyfile import PlyData
 
-from facerec3d import ScanFormatError
-from facerec3d.io import load_scan, read_lm3, save_scan, write_lm3
-from facerec3d.io.meshes import write_ply
-from tests.conftest import cap_image
+from facerec3d import FaceScan, ScanFormatError
+from facerec3d.io import SUPPORTED_SUFFIXES, load_landmarks_lm3, load_scan, save_scan, write_lm3, write_ply
 
 
-def same_valid_points(a, b):
-    assert a.n_points == b.n_points
-    np.testing.assert_allclose(a.points, b.points, atol=1e-6)
-    np.testing.assert_array_equal(a.grid, b.grid)
+def range_image_scan(rows=12, cols=16, invalid=((0, 0), (5, 7), (11, 15)), seed=1) -> FaceScan:
+    """A sphere cap (radius 60 mm, 1 m in front of the camera, Z < 0) on a grid of 2 mm pixels, some invalid."""
+    r, c = np.mgrid[0:rows, 0:cols].astype(float)
+    x, y = (c - cols / 2) * 2.0, (rows / 2 - r) * 2.0
+    z = -1000.0 + np.sqrt(np.maximum(60.0**2 - x**2 - y**2, 0.0))
+    xyz = np.stack([x, y, z], axis=-1) + np.random.default_rng(seed).normal(0, 0.01, (rows, cols, 3))
+    valid = np.ones((rows, cols), bool)
+    for i, j in invalid:
+        valid[i, j] = False
+    return FaceScan.from_range_image(xyz, valid)
+
+
+def assert_same_grid_scan(a, b):
     assert a.grid_shape == b.grid_shape
+    np.testing.assert_array_equal(a.grid, b.grid)
+    np.testing.assert_allclose(a.points, b.points, rtol=0, atol=1e-6)
 
 
-@pytest.mark.parametrize("name", ["s.abs", "s.abs.gz", "s.bnt", "s.ply", "s.npz"])
+@pytest.fixture
+def cap():
+    return range_image_scan()
+
+
+# ------------------------------------------------------------------ round trips
+@pytest.mark.parametrize("name", ["s.abs", "s.abs.gz", "s.bnt", "s.ply", "s.npz", "S.ABS.GZ", "s.NPZ"])
 def test_round_trip_is_exact(tmp_path, cap, name):
     save_scan(cap, tmp_path / name)
+    assert [p.name for p in tmp_path.iterdir()] == [name]
     back = load_scan(tmp_path / name)
-    same_valid_points(cap, back)
-    assert back.meta.scan_id == "s" and back.meta.path == str(tmp_path / name)
+    assert_same_grid_scan(cap, back)
+    assert back.meta.path == str(tmp_path / name) and back.meta.scan_id == name.split(".")[0]
 
 
-def test_ascii_ply_round_trip(tmp_path, cap):
-    write_ply(cap, tmp_path / "a.ply", binary=False)
-    assert (tmp_path / "a.ply").read_bytes().startswith(b"ply\nformat ascii")
-    same_valid_points(cap, load_scan(tmp_path / "a.ply"))
+@given(
+    rows=st.integers(1, 9), cols=st.integers(1, 9), seed=st.integers(0, 2**32 - 1),
+    suffix=st.sampled_from([".abs", ".abs.gz", ".bnt", ".ply", ".npz"]),
+)
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+def test_round_trip_of_random_grids(tmp_path, rows, cols, seed, suffix):
+    rng = np.random.default_rng(seed)
+    valid = rng.random((rows, cols)) < 0.7
+    valid.flat[rng.integers(rows * cols)] = True
+    xyz = rng.uniform(-500, 500, (rows, cols, 3)).round(6)
+    scan = FaceScan.from_range_image(xyz, valid)
+    save_scan(scan, tmp_path / f"r{suffix}")
+    assert_same_grid_scan(scan, load_scan(tmp_path / f"r{suffix}"))
 
 
-def test_abs_with_any_rows_and_columns(tmp_path):
-    scan = cap_image(7, 11, invalid=((3, 4),))
+@pytest.mark.parametrize("binary", [True, False])
+def test_ply_keeps_normals_colours_grid_and_writes_grid_triangles(tmp_path, cap, binary):
+    normals = np.tile([0.0, 0.0, 1.0], (cap.n_points, 1))
+    colors = np.random.default_rng(2).integers(0, 256, (cap.n_points, 3), dtype=np.uint8)
+    scan = cap.replace(normals=normals, colors=colors)
+    write_ply(scan, tmp_path / "a.ply", binary=binary)
+    assert (tmp_path / "a.ply").read_bytes().startswith(b"ply\nformat " + (b"binary" if binary else b"ascii"))
+    back = load_scan(tmp_path / "a.ply")
+    assert_same_grid_scan(scan, back)
+    np.testing.assert_array_equal(back.normals, normals)
+    np.testing.assert_array_equal(back.colors, colors)
+    assert PlyData.read(str(tmp_path / "a.ply"))["face"].count == len(scan.triangles()) > 0
+
+
+def test_point_cloud_ply_without_faces(tmp_path):
+    points = np.random.default_rng(3).normal(0, 50, (40, 3))
+    save_scan(FaceScan(points), tmp_path / "cloud.ply")
+    back = load_scan(tmp_path / "cloud.ply")
+    assert back.grid is None and back.normals is None and back.colors is None
+    np.testing.assert_array_equal(back.points, points)
+
+
+@pytest.mark.parametrize("byte_order", ["<", ">"])
+def test_ply_from_other_writers_float32_and_quads(tmp_path, byte_order):
+    from plyfile import PlyElement
+
+    vertex = np.array([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)], dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    face = np.array([([0, 1, 2, 3],)], dtype=[("vertex_indices", "i4", (4,))])
+    ply = PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(face, "face")], byte_order=byte_order)
+    ply.write(str(tmp_path / "quad.ply"))
+    s = load_scan(tmp_path / "quad.ply")
+    assert s.grid is None
+    np.testing.assert_array_equal(s.points, [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+
+
+# ------------------------------------------------------------------ FRGC .abs
+def test_abs_with_unusual_rows_and_columns(tmp_path):
+    scan = range_image_scan(7, 11, invalid=((3, 4), (6, 10)))
     save_scan(scan, tmp_path / "odd.abs")
-    back = load_scan(tmp_path / "odd.abs")
-    assert back.grid_shape == (7, 11)
-    same_valid_points(scan, back)
+    assert (tmp_path / "odd.abs").read_text().startswith("7 rows\n11 columns\npixels (flag X Y Z):\n")
+    assert_same_grid_scan(scan, load_scan(tmp_path / "odd.abs"))
 
 
 def test_hand_written_abs(tmp_path):
-    text = ("2 rows\n3 columns\npixels (flag X Y Z):\n1 0 1 1 1 0\n"
-            "1 -999999 3 4 5 -999999\n10 -999999 30 40 50 -999999\n-100 -999999 -300 -400 -500 -999999\n")
-    (tmp_path / "h.abs").write_text(text)
-    s = load_scan(tmp_path / "h.abs")
-    assert s.grid_shape == (2, 3)
+    text = (
+        "2 rows\r\n3 columns\r\npixels (flag X Y Z):\r\n1 0 1\n1 1 0\n"  # values may break across lines
+        "1 -999999 3 4 5 -999999\n10 -999999 30 40 50 -999999\n"
+        "-100 -999999 -300\n-400 -500 -999999\n"
+    )
+    (tmp_path / "02463d452.abs").write_text(text)
+    s = load_scan(tmp_path / "02463d452.abs")
+    assert s.grid_shape == (2, 3) and s.meta.scan_id == "02463d452"
     np.testing.assert_array_equal(s.grid, [[0, 0], [0, 2], [1, 0], [1, 1]])
-    np.testing.assert_array_equal(s.points[1], [3, 30, -300])
-    np.testing.assert_array_equal(s.points[3], [5, 50, -500])
+    np.testing.assert_array_equal(s.points, [[1, 10, -100], [3, 30, -300], [4, 40, -400], [5, 50, -500]])
 
 
-def test_hand_built_bnt_is_read_bottom_up(tmp_path):
-    rows, cols, zmin = 2, 2, -1e9
-    # stored rows bottom-up: the first stored row is the image's bottom row
-    X = [[10, 11], [0, 1]]
-    Y = [[-1, -1], [1, 1]]
-    Z = [[5, zmin], [7, 8]]
-    blocks = np.array([X, Y, Z, np.zeros((2, 2)), np.zeros((2, 2))], dtype="<f8")
-    name = b"tex.png"
-    data = struct.pack("<HHdH", rows, cols, zmin, len(name)) + name + struct.pack("<I", 20) + blocks.tobytes()
+def test_gzip_recognised_by_content_and_scan_id_drops_both_suffixes(tmp_path, cap):
+    save_scan(cap, tmp_path / "02463d452.abs.gz")
+    (tmp_path / "plain.abs").write_bytes((tmp_path / "02463d452.abs.gz").read_bytes())
+    assert load_scan(tmp_path / "02463d452.abs.gz").meta.scan_id == "02463d452"
+    assert_same_grid_scan(cap, load_scan(tmp_path / "plain.abs"))
+
+
+def test_full_size_abs_loads_fast(tmp_path):
+    scan = range_image_scan(480, 640, invalid=())
+    save_scan(scan, tmp_path / "big.abs")
+    times = []
+    for _ in range(2):
+        t = time.perf_counter()
+        back = load_scan(tmp_path / "big.abs")
+        times.append(time.perf_counter() - t)
+    assert back.n_points == 480 * 640
+    assert min(times) < 1.0, times
+
+
+# ------------------------------------------------------------- Bosphorus .bnt
+def bnt_bytes(rows, cols, zmin, blocks, texture=b"tex.png", count=None) -> bytes:
+    """A .bnt file: header, then the five (rows, cols) blocks X, Y, Z, u, v as given (stored order)."""
+    count = rows * cols * 5 if count is None else count
+    body = np.asarray(blocks, dtype="<f8").tobytes()
+    return struct.pack("<HHdH", rows, cols, zmin, len(texture)) + texture + struct.pack("<I", count) + body
+
+
+def test_hand_built_bnt_is_read_bottom_up_and_written_back_identically(tmp_path):
+    zmin = -1e9
+    # stored bottom-up: the first stored row is the image's bottom row; pixel (top row, right) is invalid
+    X = [[10, 11], [0, zmin]]
+    Y = [[-1, -1], [1, zmin]]
+    Z = [[5, 6], [7, zmin]]
+    data = bnt_bytes(2, 2, zmin, [X, Y, Z, np.zeros((2, 2)), np.zeros((2, 2))])
     (tmp_path / "bs000_N_N_0.bnt").write_bytes(data)
     s = load_scan(tmp_path / "bs000_N_N_0.bnt")
-    np.testing.assert_array_equal(s.grid, [[0, 0], [0, 1], [1, 0]])  # top row first; (1, 1) invalid
-    np.testing.assert_array_equal(s.points[0], [0, 1, 7])
-    np.testing.assert_array_equal(s.points[2], [10, -1, 5])
-    assert s.meta.extra["texture"] == "tex.png"
+    np.testing.assert_array_equal(s.grid, [[0, 0], [1, 0], [1, 1]])  # grid row 0 is the top
+    np.testing.assert_array_equal(s.points, [[0, 1, 7], [10, -1, 5], [11, -1, 6]])
+    assert s.meta.extra["texture"] == "tex.png" and s.landmarks == {}
+    save_scan(s, tmp_path / "copy.bnt")
+    assert (tmp_path / "copy.bnt").read_bytes() == bnt_bytes(2, 2, zmin, [X, Y, Z, np.zeros((2, 2)), np.zeros((2, 2))], b"")
 
 
-def test_lm3_landmarks_attached_to_bnt(tmp_path, cap):
-    save_scan(cap, tmp_path / "bs001_E_HAPPY_0.bnt")
-    (tmp_path / "bs001_E_HAPPY_0.lm3").write_text(
-        "3D landmark file\n2 landmarks:\nNose tip\n  1.5 2.5 -3.5\nChin middle\n  0 -60 -20\n")
+LM3 = "3D landmark file\n# a comment\n2 landmarks:\nNose tip\n  1.5 2.5 -3.5\n\nChin middle\n  0 -60 -20\n"
+
+
+def test_lm3_landmarks(tmp_path, cap):
+    (tmp_path / "bs001_E_HAPPY_0.lm3").write_text(LM3)
+    lm = load_landmarks_lm3(tmp_path / "bs001_E_HAPPY_0.lm3")
+    assert list(lm) == ["Nose tip", "Chin middle"]
+    np.testing.assert_array_equal(lm["Nose tip"], [1.5, 2.5, -3.5])
+    save_scan(cap, tmp_path / "bs001_E_HAPPY_0.bnt")  # a scan without landmarks leaves the .lm3 alone
     s = load_scan(tmp_path / "bs001_E_HAPPY_0.bnt")
-    np.testing.assert_array_equal(s.landmarks["Nose tip"], [1.5, 2.5, -3.5])
-    write_lm3(s.landmarks, tmp_path / "copy.lm3")
-    assert set(read_lm3(tmp_path / "copy.lm3")) == {"Nose tip", "Chin middle"}
+    np.testing.assert_array_equal(s.landmarks["Chin middle"], [0, -60, -20])
+    save_scan(s, tmp_path / "copy.bnt")  # writes copy.lm3 beside it
+    back = load_scan(tmp_path / "copy.bnt")
+    assert back.landmarks.keys() == lm.keys()
+    np.testing.assert_array_equal(back.landmarks["Nose tip"], lm["Nose tip"])
 
 
+@pytest.mark.parametrize("text, reason", [
+    ("", "no 'N landmarks:' line"),
+    ("3D landmark file\n2 landmarks:\nNose tip\n1 2 3\n", "2 landmarks announced"),
+    ("3D landmark file\n1 landmarks:\nNose tip\n1 2\n", "bad coordinates"),
+    ("3D landmark file\n1 landmarks:\nNose tip\n1 2 nan\n", "bad coordinates"),
+    ("3D landmark file\n1 landmarks:\nNose tip\n1 2 x\n", "bad coordinates"),
+    ("3D landmark file\n2 landmarks:\nA\n1 2 3\nA\n1 2 3\n", "given twice"),
+])
+def test_malformed_lm3(tmp_path, cap, text, reason):
+    (tmp_path / "f.lm3").write_text(text)
+    with pytest.raises(ScanFormatError, match=reason):
+        load_landmarks_lm3(tmp_path / "f.lm3")
+    save_scan(cap, tmp_path / "f.bnt")
+    with pytest.raises(ScanFormatError, match="f.lm3"):
+        load_scan(tmp_path / "f.bnt")
+
+
+# ------------------------------------------------------------ trimesh meshes
 @pytest.mark.parametrize("suffix", ["obj", "off", "stl"])
-def test_meshes_through_trimesh(tmp_path, suffix):
+def test_meshes_written_by_trimesh(tmp_path, suffix):
     mesh = trimesh.creation.icosphere(subdivisions=2, radius=50.0)
     mesh.export(tmp_path / f"m.{suffix}")
     s = load_scan(tmp_path / f"m.{suffix}")
-    assert s.n_points >= len(mesh.vertices) * (0.99 if suffix != "stl" else 0.0)
-    np.testing.assert_allclose(np.linalg.norm(s.points, axis=1), 50.0, atol=1e-3)
+    if suffix == "stl":  # STL repeats vertices per triangle; the reader merges them
+        np.testing.assert_allclose(s.points, np.unique(mesh.vertices.astype(np.float32), axis=0), atol=1e-4)
+    else:
+        np.testing.assert_allclose(s.points, mesh.vertices, atol=1e-5)
 
 
-def test_text_point_clouds(tmp_path):
-    (tmp_path / "p.xyz").write_text("# comment\n1 2 3\n4 5 6 7\n")
-    (tmp_path / "p.csv").write_text("x,y,z\n1,2,3\n4,5,6\n")
-    for name in ("p.xyz", "p.csv"):
+def test_obj_colours_and_point_clouds(tmp_path):
+    (tmp_path / "n.obj").write_text("v 1 2 3\nv 4 5 6\nv 7 8 10\nvn 0 0 1\nvn 0 0 1\nvn 0 1 0\nf 1//1 2//2 3//3\n")
+    s = load_scan(tmp_path / "n.obj")
+    np.testing.assert_array_equal(s.points, [[1, 2, 3], [4, 5, 6], [7, 8, 10]])
+    assert s.colors is None
+    mesh = trimesh.creation.icosphere(subdivisions=1, radius=50.0)
+    mesh.visual.vertex_colors = np.tile([10, 20, 30, 255], (len(mesh.vertices), 1))
+    mesh.export(tmp_path / "c.obj")
+    np.testing.assert_array_equal(load_scan(tmp_path / "c.obj").colors, np.tile([10, 20, 30], (len(mesh.vertices), 1)))
+    (tmp_path / "p.obj").write_text("v 1 2 3 255 0 0\nv 4 5 6 0 255 0\n")
+    (tmp_path / "p.off").write_text("OFF\n2 0 0\n1 2 3\n4 5 6\n")
+    for name in ("p.obj", "p.off"):
         np.testing.assert_array_equal(load_scan(tmp_path / name).points, [[1, 2, 3], [4, 5, 6]])
+    np.testing.assert_array_equal(load_scan(tmp_path / "p.obj").colors, [[255, 0, 0], [0, 255, 0]])
 
 
-def test_numpy_depth_map_and_points(tmp_path):
-    depth = np.full((4, 5), 10.0)
+# ------------------------------------------------------------ text point clouds
+@pytest.mark.parametrize("name, text", [
+    ("p.xyz", "# comment\n1 2 3\n\n4 5 6 7 8  # trailing comment\n"),
+    ("p.csv", "x,y,z,intensity\n1,2,3,0.5\n4, 5, 6, 0.7\n"),
+    ("p.txt", "X\tY\tZ\n1\t2\t3\n4\t5\t6\n"),
+])
+def test_text_point_clouds(tmp_path, name, text):
+    (tmp_path / name).write_text(text)
+    s = load_scan(tmp_path / name)
+    assert s.grid is None
+    np.testing.assert_array_equal(s.points, [[1, 2, 3], [4, 5, 6]])
+
+
+# ------------------------------------------------------------------- NumPy
+def test_numpy_images_depth_maps_and_point_sets(tmp_path, cap):
+    xyz, _ = cap.to_range_image()
+    np.save(tmp_path / "i.npy", xyz)
+    assert_same_grid_scan(cap, load_scan(tmp_path / "i.npy"))
+    depth = np.arange(20.0).reshape(4, 5)
     depth[1, 1] = np.nan
     np.save(tmp_path / "d.npy", depth)
     s = load_scan(tmp_path / "d.npy")
     assert s.n_points == 19 and s.grid_shape == (4, 5)
+    np.testing.assert_array_equal(s.points[s.grid.tolist().index([2, 3])], [3, -2, 13])  # x = col, y = -row
+    np.save(tmp_path / "p.npy", np.ones((5, 3)))
+    assert load_scan(tmp_path / "p.npy").n_points == 5
     np.savez(tmp_path / "p.npz", points=np.ones((3, 3)))
     assert load_scan(tmp_path / "p.npz").n_points == 3
 
 
-@pytest.mark.parametrize("content, reason", [
-    (b"", "truncated header"),
-    (b"480 rows\n640 columns\npixels (flag X Y Z):\n1 2 3\n", "expected"),
-    (b"1000000000 rows\n1000 columns\npixels (flag X Y Z):\n", "absurd size"),
-    (b"1 rows\n2 columns\npixels (flag X Y Z):\n1 1 a b c d e f\n", "non-numeric"),
-    (b"1 rows\n1 columns\npixels (flag X Y Z):\n0 -999999 -999999 -999999\n", "no valid points"),
-])
-def test_bad_abs_files_name_the_file_and_the_reason(tmp_path, content, reason):
-    p = tmp_path / "bad.abs"
+def test_npz_keeps_landmarks_and_the_valid_mask(tmp_path, cap):
+    save_scan(cap.replace(landmarks={"nose": [1, 2, 3]}), tmp_path / "s.npz")
+    back = load_scan(tmp_path / "s.npz")
+    np.testing.assert_array_equal(back.landmarks["nose"], [1, 2, 3])
+    with np.load(tmp_path / "s.npz", allow_pickle=False) as z:
+        assert set(z.files) == {"xyz", "valid", "landmark_nose"}
+        xyz, valid = z["xyz"], z["valid"]
+    xyz[0, 1] = np.nan  # NaN in a pixel marked valid is an error, not a hole
+    np.savez(tmp_path / "nan.npz", xyz=xyz, valid=valid | True)
+    with pytest.raises(ScanFormatError, match="non-finite"):
+        load_scan(tmp_path / "nan.npz")
+
+
+# --------------------------------------------------------------- bad input
+CAP_ABS = "1 rows\n2 columns\npixels (flag X Y Z):\n"
+BAD_FILES = [
+    ("bad.abs", b"", "truncated or bad header"),
+    ("bad.abs", b"480 rows\n640 columns\npixels (flag X Y Z):\n1 2 3\n", "expected 1228800 values"),
+    ("bad.abs", b"1000000000 rows\n1000 columns\npixels (flag X Y Z):\n", "absurd size"),
+    ("bad.abs", b"0 rows\n5 columns\npixels (flag X Y Z):\n", "bad size"),
+    ("bad.abs", b"480 lines\n640 columns\npixels (flag X Y Z):\n", "bad header"),
+    ("bad.abs", (CAP_ABS + "1 1 a b c d e f\n").encode(), "non-numeric"),
+    ("bad.abs", (CAP_ABS + "1 1 1 2 3 4 5 \xff\n").encode("latin-1"), "non-numeric"),
+    ("bad.abs", (CAP_ABS + "0 0 -999999 -999999 -999999 -999999 -999999 -999999\n").encode(), "no valid points"),
+    ("bad.abs", (CAP_ABS + "1 0 nan -999999 1 -999999 1 -999999\n").encode(), "non-finite"),
+    ("bad.abs", (CAP_ABS + "1 2 1 1 1 1 1 1\n").encode(), "flags must be 0 or 1"),
+    ("bad.abs.gz", gzip.compress((CAP_ABS + "1 1 1 1 1 1 1 1\n").encode(), mtime=0)[:-12], "corrupt or truncated gzip"),
+    ("bad.abs.gz", b"\x1f\x8b garbage", "corrupt or truncated gzip"),
+    ("bad.bnt", b"", "truncated header"),
+    ("bad.bnt", b"\x02\x00\x02\x00", "truncated header"),
+    ("bad.bnt", bnt_bytes(65535, 65535, -1e9, [], count=0), "absurd size"),
+    ("bad.bnt", bnt_bytes(1, 2, -1e9, np.ones((5, 1, 2)), count=11), "header says 11 values"),
+    ("bad.bnt", bnt_bytes(1, 2, -1e9, np.ones((5, 1, 2)))[:-8], "expected 80 bytes"),
+    ("bad.bnt", bnt_bytes(1, 2, -1e9, np.full((5, 1, 2), -1e9)), "no valid points"),
+    ("bad.bnt", bnt_bytes(1, 2, -1e9, np.full((5, 1, 2), np.inf)), "non-finite"),
+    ("bad.bnt", bnt_bytes(1, 2, np.nan, np.ones((5, 1, 2))), "bad zmin"),
+    ("bad.ply", b"PLY\nformat ascii 1.0\n", "not a PLY file"),
+    ("bad.ply", b"ply\nformat ascii 1.0\nelement vertex 99999999\nproperty float x\nend_header\n1\n", "bad PLY header"),
+    ("bad.ply", b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nend_header\n1\n", "not a readable PLY"),
+    ("bad.ply", b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n", "no x, y, z"),
+    ("bad.ply", b"ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
+     b"property float z\nend_header\n", "no valid points"),
+    ("bad.npy", b"\x93NUMPY garbage", "not a readable NumPy file"),
+    ("bad.npy", b"", "not a readable NumPy file"),
+    ("bad.npz", b"PK\x03\x04 garbage", "not a readable NumPy file"),
+    ("bad.xyz", b"x y z\n1 2\n", "fewer than 3 columns"),
+    ("bad.xyz", b"1 2 3\n1 2 x\n", "non-numeric"),
+    ("bad.xyz", b"1 2 3\n1 2 inf\n", "non-finite"),
+    ("bad.csv", b"", "no valid points"),
+    ("bad.obj", b"\x00\xff\xfe garbage", "no valid points"),
+    ("bad.stl", b"solid x\nfacet normal 0 0 1\nouter loop\nvertex 1 2\n", "no valid points"),
+]
+
+
+@pytest.mark.parametrize("name, content, reason", BAD_FILES)
+def test_bad_files_raise_scan_format_error_naming_file_and_reason(tmp_path, name, content, reason):
+    p = tmp_path / name
     p.write_bytes(content)
     with pytest.raises(ScanFormatError) as e:
         load_scan(p)
-    assert str(p) in str(e.value) and reason in str(e.value)
+    assert str(e.value).startswith(str(p)) and reason in str(e.value)
 
 
-def test_unknown_missing_and_corrupt_gzip(tmp_path):
+def test_numpy_arrays_that_are_not_scans(tmp_path):
+    np.save(tmp_path / "o.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    np.save(tmp_path / "s.npy", np.array(["a", "b", "c"]))
+    np.save(tmp_path / "v.npy", np.ones(7))
+    np.savez(tmp_path / "k.npz", other=np.ones((3, 3)))
+    np.savez(tmp_path / "m.npz", xyz=np.ones((2, 2, 3)), valid=np.ones((3, 2), bool))
+    for name, reason in [("o.npy", "Python objects"), ("s.npy", "not numeric"), ("v.npy", r"shape \(7,\)"),
+                         ("k.npz", "needs an 'xyz' or a 'points'"), ("m.npz", "'valid' must be")]:
+        with pytest.raises(ScanFormatError, match=reason):
+            load_scan(tmp_path / name)
+
+
+def test_unknown_missing_and_unwritable(tmp_path, cap):
     with pytest.raises(ScanFormatError, match="unknown scan format"):
         load_scan(tmp_path / "x.foo")
-    with pytest.raises(ScanFormatError, match="no such file"):
+    with pytest.raises(ScanFormatError, match="missing.abs: no such file"):
         load_scan(tmp_path / "missing.abs")
-    (tmp_path / "c.abs.gz").write_bytes(gzip.compress(b"2 rows\n2 columns\npixels")[:-5])
-    with pytest.raises(ScanFormatError, match="c.abs.gz"):
-        load_scan(tmp_path / "c.abs.gz")
+    (tmp_path / "dir.ply").mkdir()
+    with pytest.raises(ScanFormatError, match="not a regular file"):
+        load_scan(tmp_path / "dir.ply")
+    with pytest.raises(ScanFormatError, match="cannot write"):
+        save_scan(cap, tmp_path / "x.obj")
+    with pytest.raises(ValueError, match="needs a scan with a grid"):
+        save_scan(FaceScan(cap.points), tmp_path / "x.abs")
+    assert set(SUPPORTED_SUFFIXES) >= {".abs", ".abs.gz", ".bnt", ".ply", ".obj", ".off", ".stl", ".npz"}

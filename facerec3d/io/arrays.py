@@ -1,77 +1,76 @@
-"""NumPy range images and point clouds (.npy, .npz), without pickle."""
+"""NumPy scans (`.npy`, `.npz`), read without pickle.
+
+`.npy` holds one array:
+- (H, W, 3) points in mm, NaN in any coordinate marking an invalid pixel;
+- (H, W) depth map in mm with NaN invalid, read as x = column·1 mm, y = −row·1 mm, z = depth
+  (W = 3 is taken as the next case);
+- (N, 3) points in mm (rows with NaN dropped).
+`.npz` holds `xyz` (H, W, 3) with optional `valid` (H, W) bool (else NaN marks
+invalid pixels), or `points` (N, 3), and landmarks as (3,) arrays named
+`landmark_<name>`. Either suffix reads either kind of file.
+"""
 
 from __future__ import annotations
 
-import zipfile
-import zlib
 from pathlib import Path
 
 import numpy as np
 
 from facerec3d.errors import ScanFormatError
-from facerec3d.io.rangeformats import _grid_scan
+from facerec3d.io.common import MAX_POINTS, grid_scan, library_errors, point_scan
 from facerec3d.scan import FaceScan
 
 LANDMARK_PREFIX = "landmark_"
+MAX_MEMBER_BYTES = MAX_POINTS * 3 * 8 + 4096  # largest .npz member accepted (uncompressed)
 
 
-def _load(path: Path, loader):
-    try:
-        return loader(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, KeyError) as e:
-        raise ScanFormatError(path, f"not a readable NumPy file ({e})") from None
-
-
-def _from_array(path: Path, a: np.ndarray, valid: np.ndarray | None = None) -> FaceScan:
+def _from_array(path: str | Path, a: np.ndarray, valid: np.ndarray | None = None) -> FaceScan:
+    """A scan from an (H, W, 3), (H, W) or (N, 3) array (see the module docstring)."""
     if a.dtype.kind not in "fiu":
         raise ScanFormatError(path, f"array of {a.dtype} is not numeric")
-    a = a.astype(np.float64)
-    if a.ndim == 2 and a.shape[1] != 3:  # a depth map: x = column, y = −row, 1 mm pixels
-        rows, cols = np.mgrid[0 : a.shape[0], 0 : a.shape[1]]
-        a = np.stack([cols.astype(float), -rows.astype(float), a], axis=-1)
+    a = np.asarray(a, dtype=np.float64)
+    if a.ndim == 2 and a.shape[1] != 3:  # a depth map
+        rows, cols = np.indices(a.shape, dtype=np.float64)
+        a = np.stack([cols, -rows, a], axis=-1)
     if a.ndim == 3 and a.shape[2] == 3:
-        ok = np.isfinite(a).all(axis=-1) if valid is None else valid.astype(bool) & np.isfinite(a).all(axis=-1)
-        if valid is not None and valid.shape != a.shape[:2]:
-            raise ScanFormatError(path, f"valid mask {valid.shape} does not match image {a.shape[:2]}")
-        return _grid_scan(path, a, ok)
-    if a.ndim == 2 and a.shape[1] == 3:
-        a = a[np.isfinite(a).all(axis=1)]
-        if not len(a):
-            raise ScanFormatError(path, "no valid points")
-        return FaceScan(points=a)
+        if valid is None:
+            return grid_scan(path, a, ~np.isnan(a).any(axis=-1))
+        if valid.shape != a.shape[:2] or valid.dtype.kind not in "biu":
+            raise ScanFormatError(path, f"'valid' must be an {a.shape[:2]} boolean mask, not {valid.dtype} {valid.shape}")
+        return grid_scan(path, a, valid.astype(bool))
+    if a.ndim == 2:
+        return point_scan(path, a[~np.isnan(a).any(axis=1)])
     raise ScanFormatError(path, f"array of shape {a.shape} is neither (H, W, 3), (H, W) nor (N, 3)")
 
 
-def read_npy(path: str | Path) -> FaceScan:
-    """An (H, W, 3) point image or (H, W) depth map (NaN = invalid), or (N, 3) points."""
-    path = Path(path)
-    return _from_array(path, _load(path, np.load))
-
-
-def read_npz(path: str | Path) -> FaceScan:
-    """An .npz with `xyz` (H, W, 3) and optional `valid`, or `points` (N, 3); `landmark_<name>` arrays too."""
-    path = Path(path)
-    with _load(path, np.load) as z:
-        try:
-            if "xyz" in z:
-                scan = _from_array(path, z["xyz"], z["valid"] if "valid" in z else None)
-            elif "points" in z:
-                scan = _from_array(path, z["points"])
-            else:
+def read_numpy(path: str | Path) -> FaceScan:
+    """A scan from an `.npy` or `.npz` file (see the module docstring)."""
+    with library_errors(path, "NumPy file"):
+        with open(path, "rb") as f:
+            magic = f.read(4)
+        if not magic.startswith(b"PK"):  # not a zip: a single .npy array, memory-mapped until checked
+            return _from_array(path, np.load(path, mmap_mode="r", allow_pickle=False))
+        with np.load(path, allow_pickle=False) as z:
+            for name in z.zip.namelist():
+                if z.zip.getinfo(name).file_size > MAX_MEMBER_BYTES:
+                    raise ScanFormatError(path, f"absurd size: member {name[:80]!r} is over {MAX_MEMBER_BYTES} bytes")
+            key = "xyz" if "xyz" in z.files else "points" if "points" in z.files else None
+            if key is None:
                 raise ScanFormatError(path, "an .npz scan needs an 'xyz' or a 'points' array")
-            landmarks = {k[len(LANDMARK_PREFIX):]: z[k] for k in z.files if k.startswith(LANDMARK_PREFIX)}
-        except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
-            raise ScanFormatError(path, f"corrupt .npz ({e})") from None
-    if any(np.shape(v) != (3,) for v in landmarks.values()):
-        raise ScanFormatError(path, "landmarks must be 3-vectors")
+            scan = _from_array(path, z[key], z["valid"] if key == "xyz" and "valid" in z.files else None)
+            landmarks = {k[len(LANDMARK_PREFIX) :]: z[k] for k in z.files if k.startswith(LANDMARK_PREFIX)}
+    for name, v in landmarks.items():
+        if v.shape != (3,) or v.dtype.kind not in "fiu" or not np.isfinite(v).all():
+            raise ScanFormatError(path, f"landmark {name[:80]!r} is not a finite 3-vector")
     return scan.replace(landmarks=landmarks)
 
 
 def write_npz(scan: FaceScan, path: str | Path) -> None:
-    """Write a scan as .npz: `xyz` + `valid` when it has a grid, else `points`; landmarks as `landmark_<name>`."""
-    arrays = {LANDMARK_PREFIX + k: v for k, v in scan.landmarks.items()}
+    """Write a scan as compressed `.npz`: `xyz` + `valid` for a grid scan, else `points`; landmarks too (mm)."""
+    arrays = {LANDMARK_PREFIX + name: v for name, v in scan.landmarks.items()}
     if scan.grid is not None:
         arrays["xyz"], arrays["valid"] = scan.to_range_image()
     else:
         arrays["points"] = scan.points
-    np.savez_compressed(path, **arrays)
+    with open(path, "wb") as f:  # a file object, so NumPy does not append '.npz' to the name
+        np.savez_compressed(f, **arrays)

@@ -1,0 +1,141 @@
+"""Meshes and point clouds: PLY through plyfile (read and write), OBJ / OFF / STL through trimesh (read).
+
+Vertices become the scan's points (mm); faces are not kept (a grid scan is
+re-triangulated from its grid). A PLY written here keeps the range-image grid:
+integer vertex properties `row` and `col` and a header comment
+`facerec3d grid_shape R C`.
+"""
+
+from __future__ import annotations
+
+import io
+import re
+from pathlib import Path
+
+import numpy as np
+
+from facerec3d.errors import ScanFormatError
+from facerec3d.io.common import library_errors, open_binary, point_scan, read_bytes
+from facerec3d.scan import FaceScan
+
+GRID_COMMENT = "facerec3d grid_shape"
+PLY_ELEMENT_LINE = re.compile(rb"^element\s+(\S+)\s+(\S+)", re.MULTILINE)
+MAX_PLY_HEADER = 65536  # bytes
+TRIANGLES = {"face": {"vertex_indices": 3, "vertex_index": 3}}  # lets plyfile memory-map triangle lists
+
+
+def _check_ply_header(path: str | Path) -> None:
+    """Refuse a file without PLY header, or whose header announces more elements than the file has bytes.
+
+    This runs before plyfile, which allocates whatever the header announces.
+    """
+    with open_binary(path) as f:
+        head = f.read(MAX_PLY_HEADER)
+        size = f.seek(0, 2)
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        raise ScanFormatError(path, "not a PLY file (no 'ply' magic or no 'end_header')")
+    for name, count in PLY_ELEMENT_LINE.findall(head[:end]):
+        if not count.isdigit() or int(count) > size:
+            raise ScanFormatError(path, f"bad PLY header: {count[:20]!r} {name[:20]!r} elements in {size} bytes")
+
+
+def _stack(vertex: np.ndarray, names: tuple[str, str, str], dtype) -> np.ndarray | None:
+    """The (N, 3) array of three vertex properties, or None when the file lacks them."""
+    if not set(names) <= set(vertex.dtype.names):
+        return None
+    return np.stack([vertex[name] for name in names], axis=1).astype(dtype)
+
+
+def read_ply(path: str | Path) -> FaceScan:
+    """A PLY mesh or point cloud (ASCII or binary), with normals, colours and a facerec3d grid when present."""
+    from plyfile import PlyData
+
+    _check_ply_header(path)
+    with library_errors(path, "PLY file"):
+        try:  # fast: triangle lists memory-mapped
+            ply = PlyData.read(str(path), known_list_len=TRIANGLES)
+        except Exception:  # other polygons, or a corrupt file: read again element by element
+            ply = PlyData.read(str(path))
+        vertex = ply["vertex"].data
+        points = _stack(vertex, ("x", "y", "z"), np.float64)
+        normals = _stack(vertex, ("nx", "ny", "nz"), np.float64)
+        colors = _stack(vertex, ("red", "green", "blue"), np.uint8)
+        shape = [c.split()[2:] for c in ply.comments if c.startswith(GRID_COMMENT)]
+        grid = grid_shape = None
+        if shape and {"row", "col"} <= set(vertex.dtype.names):
+            grid_shape = (int(shape[0][0]), int(shape[0][1]))
+            grid = np.stack([vertex["row"], vertex["col"]], axis=1).astype(np.int64)
+    if points is None:
+        raise ScanFormatError(path, "PLY vertices have no x, y, z")
+    return point_scan(path, points, grid=grid, grid_shape=grid_shape, normals=normals, colors=colors)
+
+
+def write_ply(scan: FaceScan, path: str | Path, binary: bool = True) -> None:
+    """Write a scan as PLY (little-endian binary or ASCII).
+
+    Vertices: x, y, z (float64 mm), + nx, ny, nz, + red, green, blue, + grid row, col (int32) and the
+    comment `facerec3d grid_shape R C`; faces: the grid triangles of a grid scan. plyfile writes the
+    header; the body is written here in one piece (plyfile writes list elements record by record).
+    """
+    from plyfile import PlyData, PlyElement
+
+    columns = {"x": scan.points[:, 0], "y": scan.points[:, 1], "z": scan.points[:, 2]}
+    if scan.normals is not None:
+        columns.update(zip(("nx", "ny", "nz"), scan.normals.T))
+    if scan.colors is not None:
+        columns.update(zip(("red", "green", "blue"), np.asarray(scan.colors, dtype=np.uint8).T))
+    comments = []
+    if scan.grid is not None:
+        columns.update(row=scan.grid[:, 0], col=scan.grid[:, 1])
+        comments.append(f"{GRID_COMMENT} {scan.grid_shape[0]} {scan.grid_shape[1]}")
+    kinds = {"f": "<f8", "u": "u1", "i": "<i4"}
+    vertex = np.empty(scan.n_points, dtype=[(name, kinds[col.dtype.kind]) for name, col in columns.items()])
+    for name, col in columns.items():
+        vertex[name] = col
+    elements = [PlyElement.describe(vertex, "vertex")]
+    tris = scan.triangles() if scan.grid is not None and scan.n_points else np.empty((0, 3), dtype=np.int64)
+    face = np.empty(len(tris), dtype=[("n", "u1"), ("vertex_indices", "<i4", (3,))])  # list uchar int
+    face["n"], face["vertex_indices"] = 3, tris
+    if len(tris):  # (an unfilled array of the face element's type, for its header lines)
+        elements.append(PlyElement.describe(np.empty(len(tris), [("vertex_indices", "<i4", (3,))]), "face"))
+    header = PlyData(elements, text=not binary, byte_order="<", comments=comments).header + "\n"
+    with open(path, "wb") as f:
+        f.write(header.encode("ascii"))
+        if binary:
+            f.write(vertex.tobytes() + face.tobytes())
+        else:
+            np.savetxt(f, vertex, fmt=["%.17g" if kinds[c.dtype.kind] == "<f8" else "%d" for c in columns.values()])
+            np.savetxt(f, np.column_stack([face["n"], face["vertex_indices"]]), fmt="%d")
+
+
+def read_mesh(path: str | Path) -> FaceScan:
+    """An OBJ, OFF or STL mesh or point cloud: its vertices, with vertex colours when the file has them.
+
+    Normals are not taken from these files (trimesh does not tell stored from computed ones);
+    matchers estimate them from the points.
+
+    STL repeats each vertex for every triangle; those repeats are merged (the order of the points is then lost).
+    """
+    import trimesh
+
+    suffix = Path(path).suffix.lower().lstrip(".")
+    data = read_bytes(path)
+    normals = colors = None
+    with library_errors(path, f"{suffix.upper()} file"):
+        geometry = trimesh.load(io.BytesIO(data), file_type=suffix, process=False)
+        if isinstance(geometry, trimesh.Scene):
+            parts = geometry.dump()
+            points = np.concatenate([np.asarray(g.vertices) for g in parts]) if parts else np.empty((0, 3))
+        else:
+            points = np.asarray(geometry.vertices, dtype=np.float64)
+        if isinstance(geometry, trimesh.Trimesh):
+            if geometry.visual.kind == "vertex":  # otherwise trimesh reports a default colour
+                colors = np.asarray(geometry.visual.vertex_colors)
+        elif isinstance(geometry, trimesh.PointCloud):
+            colors = np.asarray(geometry.colors)
+    if colors is not None:
+        colors = colors[:, :3] if colors.ndim == 2 and len(colors) == len(points) and len(points) else None
+    if suffix == "stl":
+        points, normals, colors = np.unique(points, axis=0), None, None
+    return point_scan(path, points, normals=normals, colors=colors)
