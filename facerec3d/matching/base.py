@@ -30,6 +30,7 @@ from facerec3d.scan import FaceScan
 TIE_TOLERANCE = 1e-9
 
 _META_KEY = "__template__"
+_RESERVED = (_META_KEY, "file", "allow_pickle")  # np.savez's own argument names
 
 
 @dataclass(eq=False)
@@ -48,12 +49,13 @@ class Template:
         return sum(int(a.nbytes) for a in self.arrays.values())
 
     def save(self, path: str | PathLike) -> None:
-        """Write to an .npz file at exactly `path`: the arrays and a JSON string with the rest."""
-        if _META_KEY in self.arrays:
-            raise ValueError(f"array name {_META_KEY!r} is reserved")
-        meta = json.dumps({"subject": self.subject, "scan_id": self.scan_id, "method": self.method, "attrs": self.attrs})
+        """Write to an .npz file at exactly `path`: the arrays and a JSON string with the rest (no pickle)."""
+        if clash := set(_RESERVED) & set(self.arrays):
+            raise ValueError(f"array names {sorted(clash)} are reserved")
+        meta = json.dumps({"subject": self.subject, "scan_id": self.scan_id, "method": self.method,
+                           "attrs": self.attrs})
         with open(path, "wb") as f:
-            np.savez(f, **self.arrays, **{_META_KEY: np.array(meta)})
+            np.savez(f, allow_pickle=False, **self.arrays, **{_META_KEY: np.array(meta)})
 
     @classmethod
     def load(cls, path: str | PathLike) -> "Template":
@@ -65,7 +67,8 @@ class Template:
 
 
 def rank(scores: np.ndarray, tiebreak: np.ndarray | None = None, tolerance: float = TIE_TOLERANCE) -> np.ndarray:
-    """Indices ordering scores best (highest) first; near-ties (relative difference < tolerance) go to the larger tiebreak."""
+    """Indices ordering scores best (highest) first; runs of near-ties (relative difference < tolerance between
+    neighbours) are ordered by the larger tiebreak."""
     s = np.asarray(scores, dtype=np.float64)
     order = np.argsort(-s, kind="stable")
     if tiebreak is None or len(s) < 2:

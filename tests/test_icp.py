@@ -1,0 +1,271 @@
+"""ICP matching (chapter §8.6.1) on morphable-model faces: motion recovery, filters, exactness, identification."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from facerec3d import FaceScan, ScanMeta
+from facerec3d.datasets.model import load_model
+from facerec3d.geometry.normals import estimate_normals
+from facerec3d.geometry.transforms import rigid_fit, rotation_between, rotation_from_euler
+from facerec3d.matching import GalleryIndex, ICPConfig, ICPMatcher, ProbeData, Template, icp
+from facerec3d.matching.icp import _fit_rigid
+from facerec3d.preprocess.resample import ResampleConfig, depth_to_scan, rasterize_depth
+
+CROP_MM = 80.0
+
+
+def face_mesh(identity: int) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices mm with the nose tip at the origin, face triangles) of a random model identity."""
+    model = load_model()
+    v = model.shape(np.random.default_rng(identity).standard_normal(100))
+    return v - v[model.nose_tip], model.triangles[(model.region[model.triangles] == 0).all(axis=1)]
+
+
+def grid_scan(mesh, identity: int = 0) -> FaceScan:
+    """The face as preprocessing leaves it: on the 1 mm x–y grid, cropped to 80 mm around the nose."""
+    scan = depth_to_scan(rasterize_depth(mesh[0], mesh[1]), ResampleConfig())
+    scan = scan.subset(np.linalg.norm(scan.points, axis=1) <= CROP_MM)
+    return scan.replace(meta=ScanMeta(subject=f"s{identity}", scan_id=f"s{identity}-g"))
+
+
+def random_points(mesh, density: float, rng: np.random.Generator) -> np.ndarray:
+    """Uniform random points on the face surface (about `density` per mm²), cropped to 80 mm."""
+    v, tri = mesh
+    a, b, c = v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    k = rng.choice(len(tri), int(area.sum() * density), p=area / area.sum())
+    u, w = rng.random(len(k)), rng.random(len(k))
+    flip = u + w > 1
+    u[flip], w[flip] = 1 - u[flip], 1 - w[flip]
+    p = a[k] + u[:, None] * (b[k] - a[k]) + w[:, None] * (c[k] - a[k])
+    return p[np.linalg.norm(p, axis=1) <= CROP_MM]
+
+
+def moved_back(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Points p with R p + t = the given points: a probe whose true alignment is (R, t)."""
+    return (points - t) @ R
+
+
+def errors(result, R: np.ndarray, t: np.ndarray) -> tuple[float, float]:
+    return rotation_between(R, result.R), float(np.linalg.norm(result.t - t))
+
+
+@pytest.fixture(scope="module")
+def mesh():
+    return face_mesh(1)
+
+
+@pytest.fixture(scope="module")
+def cloud(mesh):
+    """A gridless gallery of random surface samples (no lattice for point-to-point ICP to lock onto)."""
+    return FaceScan(random_points(mesh, 0.7, np.random.default_rng(3)))
+
+
+# Large motions need a wide start and a slow shrink; point-to-point ICP creeps.
+WIDE = ICPConfig(distance_start=60.0, shrink_iterations=60, max_iterations=150, fine_iterations=20, tolerance=1e-10)
+MOTIONS = [((15, 0, 0), (0, 0, 0)), ((0, 0, 15), (0, 0, 0)), ((0, 0, 0), (20, 0, 0)), ((0, 0, 0), (0, 0, 20)),
+           ((-9, 9, 9), (-12, 12, -12)), ((10, -5, 8), (12, -10, 12))]
+
+
+@pytest.fixture(scope="module")
+def wide_index(cloud):
+    return GalleryIndex.from_scan(cloud, WIDE)
+
+
+@pytest.mark.parametrize("variant", ["point-to-point", "point-to-plane"])
+@pytest.mark.parametrize("angles,shift", MOTIONS)
+def test_exact_motion_recovered(cloud, wide_index, variant, angles, shift):
+    R, t = rotation_from_euler(*angles), np.asarray(shift, float)
+    config = dataclasses.replace(WIDE, variant=variant)
+    result = icp(moved_back(cloud.points, R, t), wide_index, config)
+    rot, tra = errors(result, R, t)
+    assert rot < 0.05 and tra < 0.02, (rot, tra)
+    assert result.mse < 1e-6
+
+
+@pytest.mark.parametrize("variant", ["point-to-point", "point-to-plane"])
+def test_noisy_motion_recovered(cloud, wide_index, variant):
+    config = dataclasses.replace(WIDE, variant=variant)
+    rng = np.random.default_rng(5)
+    for angles, shift in MOTIONS[::2]:
+        R, t = rotation_from_euler(*angles), np.asarray(shift, float)
+        probe = moved_back(cloud.points, R, t) + rng.normal(0.0, 0.5, cloud.points.shape)
+        rot, tra = errors(icp(probe, wide_index, config), R, t)
+        assert rot < 0.5 and tra < 0.5, (angles, shift, rot, tra)
+
+
+def test_default_config_on_preprocessed_faces(mesh):
+    """Grid gallery, probe resampled after a small pose error (≤ 3°, ≤ 3 mm) with 0.3 mm depth noise."""
+    gallery = GalleryIndex.from_scan(grid_scan(mesh))
+    Rp, tp = rotation_from_euler(2.5, -2.0, 1.5), np.array([2.0, -3.0, 1.5])
+    moved = (mesh[0] @ Rp.T + tp, mesh[1])
+    probe = grid_scan(moved).points
+    probe[:, 2] += np.random.default_rng(0).normal(0.0, 0.3, len(probe))
+    R, t = Rp.T, -Rp.T @ tp
+    start_rot, start_tra = errors(icp(probe, gallery, ICPConfig(max_iterations=0, fine_iterations=0)), R, t)
+    for variant, (max_rot, max_tra) in {"point-to-point": (1.0, 1.5), "point-to-plane": (0.2, 0.2)}.items():
+        result = icp(probe, gallery, ICPConfig(variant=variant))
+        rot, tra = errors(result, R, t)
+        assert rot < max_rot and tra < max_tra, (variant, rot, tra)
+        assert result.n_correspondences > 800 and result.mse < 0.6
+    assert start_rot > 3.0 and start_tra > 3.0  # the test starts away from the answer
+
+
+def test_rigid_fit_fixes_reflections():
+    """Noisy near-planar points mirrored through their plane: the raw SVD solution is a reflection."""
+    rng = np.random.default_rng(2)
+    P = np.c_[rng.uniform(-50, 50, (40, 2)), rng.normal(0, 0.5, 40)]
+    G = P * [1.0, 1.0, -1.0] + rng.normal(0, 0.05, P.shape)
+    H = (P - P.mean(0)).T @ (G - G.mean(0))
+    U, _, Vt = np.linalg.svd(H)
+    assert np.linalg.det(Vt.T @ U.T) < 0  # the configuration does trigger the fix
+    R1, t1 = rigid_fit(P, G)
+    R2, t2 = _fit_rigid(np.ascontiguousarray(H), P.mean(0), G.mean(0))
+    for R in (R1, R2):
+        assert np.linalg.det(R) == pytest.approx(1.0)
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(R2, R1, atol=1e-12)
+    np.testing.assert_allclose(t2, t1, atol=1e-9)
+    assert rotation_between(np.eye(3), R1) < 2.0  # the best rotation here is nearly the identity
+
+
+def test_fit_rigid_matches_arun():
+    rng = np.random.default_rng(4)
+    P = rng.normal(0, 30, (50, 3))
+    R, t = rotation_from_euler(20, -10, 5), np.array([3.0, -4.0, 5.0])
+    G = P @ R.T + t + rng.normal(0, 0.1, P.shape)
+    H = (P - P.mean(0)).T @ (G - G.mean(0))
+    R2, t2 = _fit_rigid(np.ascontiguousarray(H), P.mean(0), G.mean(0))
+    R1, t1 = rigid_fit(P, G)
+    np.testing.assert_allclose(R2, R1, atol=1e-12)
+    np.testing.assert_allclose(t2, t1, atol=1e-9)
+
+
+def exact_mse(probe: ProbeData, gallery: GalleryIndex, result, config: ICPConfig) -> tuple[float, int]:
+    """The MSE and pair count at the result's transform, recomputed with a k-d tree and the same filters."""
+    p = probe.points @ result.R.T + result.t
+    d, j = cKDTree(gallery.points.astype(np.float64)).query(p)
+    keep = d <= config.distance_end * gallery.resolution
+    keep &= ~gallery.boundary[j]
+    cos = ((probe.normals @ result.R.T) * (gallery.normals[j] / 127.0)).sum(axis=1)
+    keep &= cos >= np.cos(np.radians(config.max_normal_angle))
+    return float(np.mean(d[keep] ** 2)), int(keep.sum())
+
+
+@pytest.mark.parametrize("variant", ["point-to-point", "point-to-plane"])
+def test_final_mse_is_exact_closest_point_mse(mesh, variant):
+    """The voxel lookup is approximate, but the reported MSE must be that of the exact closest points."""
+    config = ICPConfig(variant=variant)
+    gallery = GalleryIndex.from_scan(grid_scan(mesh), config)
+    rng = np.random.default_rng(8)
+    for identity in (1, 2):  # genuine and impostor
+        points = random_points(face_mesh(identity), 1.0, rng)
+        points = points @ rotation_from_euler(2, 1, -1).T + [1.0, -1.0, 0.5] + rng.normal(0, 0.3, points.shape)
+        probe = ProbeData.build(points, None, None, config)
+        result = icp(points, gallery, config)
+        mse, m = exact_mse(probe, gallery, result, config)
+        assert m == result.n_correspondences
+        assert result.mse == pytest.approx(mse, rel=1e-9)
+
+
+def test_boundary_filter_helps_partial_overlap(mesh):
+    """Gallery = upper part of the face, probe = the whole face: without the boundary filter the probe's
+    lower face pulls on the gallery's lower edge (point-to-point; point-to-plane barely feels the pull)."""
+    upper = grid_scan(mesh)
+    upper = upper.subset(upper.points[:, 1] > -15.0)
+    R, t = rotation_from_euler(3, -2, 2), np.array([1.5, -2.0, 1.0])
+    probe = moved_back(random_points(mesh, 1.0, np.random.default_rng(6)), R, t)
+    err = {}
+    for drop in (True, False):
+        config = ICPConfig(drop_boundary=drop, distance_end=3.0, tolerance=1e-5, fine_iterations=10, max_iterations=80)
+        err[drop] = errors(icp(probe, GalleryIndex.from_scan(upper, config), config), R, t)
+    assert err[True][1] < 0.5 * err[False][1], err
+    assert err[True][0] < err[False][0], err
+
+
+def test_distance_filter_rejects_outliers(mesh):
+    """A cluster of 300 points 6 mm in front of the cheek: kept by a fixed 10 mm threshold, dropped by the schedule."""
+    rng = np.random.default_rng(9)
+    gallery = grid_scan(mesh)  # resolution 1 mm
+    R, t = rotation_from_euler(2, 2, -2), np.array([1.0, 1.0, -1.0])
+    face = random_points(mesh, 1.0, rng)
+    cheek = face[np.argmin(np.linalg.norm(face - [40.0, -20.0, -20.0], axis=1))]
+    cluster = cheek + [0.0, 0.0, 6.0] + rng.normal(0, 1.0, (300, 3))
+    probe = moved_back(np.vstack([face, cluster]), R, t)
+    config = dict(variant="point-to-plane", fine_points=0, max_normal_angle=None)
+    shrinking = ICPConfig(**config)  # 10 mm down to 2 mm
+    fixed = ICPConfig(**config, distance_end=10.0)
+    good = icp(probe, GalleryIndex.from_scan(gallery, shrinking), shrinking)
+    bad = icp(probe, GalleryIndex.from_scan(gallery, fixed), fixed)
+    assert errors(good, R, t)[1] < 0.1 < errors(bad, R, t)[1]
+    d = cKDTree(gallery.points).query(probe[len(face):] @ good.R.T + good.t)[0]
+    assert np.all(d > 2.0 * gallery.resolution())  # no cluster point can be a pair
+    assert good.n_correspondences <= len(face)
+
+
+def test_normal_and_colour_filters(mesh):
+    gallery = grid_scan(mesh)
+    config = ICPConfig(max_color_difference=30.0, min_overlap=0.0)
+    index = GalleryIndex.from_scan(gallery.replace(colors=np.full((gallery.n_points, 3), 120, np.uint8)), config)
+    points = random_points(mesh, 1.0, np.random.default_rng(1))
+    colours = np.full((len(points), 3), 125, np.uint8)
+    base = icp(points, index, config, probe_colors=colours)
+    assert base.n_correspondences > 0.8 * config.fine_points
+    colours[points[:, 0] > 0] = 200  # 80 per channel off on the face's left half
+    assert icp(points, index, config, probe_colors=colours).n_correspondences < 0.7 * base.n_correspondences
+    flipped = icp(points, index, config, probe_normals=-estimate_normals(points))
+    assert flipped.n_correspondences < 0.01 * base.n_correspondences and flipped.mse == np.inf
+
+
+def test_template_round_trip(tmp_path, mesh):
+    matcher = ICPMatcher()
+    template = matcher.enroll(grid_scan(mesh, 1))
+    path = tmp_path / "gallery.npz"
+    template.save(path)
+    loaded = Template.load(path)
+    assert loaded.method == "icp" and loaded.subject == "s1" and loaded.attrs == template.attrs
+    probe_scan = FaceScan(random_points(mesh, 1.0, np.random.default_rng(2)) + [0.5, -0.5, 0.3])
+    probe = matcher.prepare(probe_scan)
+    probe.save(tmp_path / "probe.npz")
+    assert matcher.score(probe, loaded) == matcher.score(Template.load(tmp_path / "probe.npz"), template)
+    assert matcher.score(probe_scan, template) == matcher.score(probe, loaded)
+    assert template.nbytes < 600_000
+
+
+def test_identification_and_verification():
+    """15 identities: gallery on the preprocessing grid, probes differently sampled, 0.3 mm noise, ≤ 5°/5 mm off."""
+    rng = np.random.default_rng(11)
+    meshes = [face_mesh(100 + i) for i in range(15)]
+    matcher = ICPMatcher()
+    gallery = [matcher.enroll(grid_scan(m, i)) for i, m in enumerate(meshes)]
+    probes = []
+    for m in meshes:
+        R, t = rotation_from_euler(*rng.uniform(-5, 5, 3)), rng.uniform(-5, 5, 3)
+        points = random_points(m, 1.0, rng) @ R.T + t
+        probes.append(matcher.prepare(FaceScan(points + rng.normal(0, 0.3, points.shape))))
+    S = np.array([matcher.scores(p, gallery)[0] for p in probes])
+    assert [matcher.identify(p, gallery, k=3)[0][0] for p in probes] == list(range(15))
+    genuine, impostor = np.diag(S), S[~np.eye(15, dtype=bool)]
+    assert genuine.min() > impostor.max()
+    threshold = 0.5 * (genuine.min() + impostor.max())
+    assert all(matcher.verify(probes[i], gallery[i], threshold) for i in (0, 7, 14))
+    assert not any(matcher.verify(probes[i], gallery[(i + 1) % 15], threshold) for i in (0, 7, 14))
+    assert matcher.score(probes[3], gallery[5]) == S[3, 5]  # the fast path agrees with score()
+
+
+def test_init_and_config_checks(cloud, wide_index):
+    R, t = rotation_from_euler(40, 0, 0), np.array([0.0, 0.0, 60.0])  # far outside the zone of convergence
+    probe = moved_back(cloud.points, R, t)
+    assert icp(probe, wide_index, WIDE).mse == np.inf
+    start = (rotation_from_euler(39, 0, 1), t + [1.0, 0.0, -1.0])
+    rot, tra = errors(icp(probe, wide_index, WIDE, init=start), R, t)
+    assert rot < 0.05 and tra < 0.02
+    with pytest.raises(ValueError):
+        ICPConfig(variant="plane-to-plane")
+    with pytest.raises(ValueError):
+        ICPConfig(distance_end=20.0)
+    with pytest.raises(TypeError):
+        ICPMatcher().score(Template(None, None, "icp", {}), Template(None, None, "icp", {}))

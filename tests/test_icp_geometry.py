@@ -1,0 +1,63 @@
+"""PCA normals and boundary points used by ICP (geometry/normals.py)."""
+
+import numpy as np
+import pytest
+
+from facerec3d import FaceScan
+from facerec3d.geometry.normals import boundary_mask, estimate_normals
+
+
+def plane_scan(rows=30, cols=40, spacing=1.0) -> FaceScan:
+    r, c = np.mgrid[0:rows, 0:cols].astype(float)
+    x, y = c * spacing, -r * spacing
+    z = 0.3 * x + 0.1 * y
+    return FaceScan.from_range_image(np.stack([x, y, z], axis=-1))
+
+
+def test_plane_normals_grid_and_gridless():
+    scan = plane_scan()
+    truth = np.array([-0.3, -0.1, 1.0]) / np.linalg.norm([-0.3, -0.1, 1.0])
+    for n in (estimate_normals(scan.points, grid=scan.grid, grid_shape=scan.grid_shape), estimate_normals(scan.points)):
+        np.testing.assert_allclose(n, np.broadcast_to(truth, n.shape), atol=1e-9)
+    below = estimate_normals(scan.points, viewpoint=[0.0, 0.0, -100.0])
+    np.testing.assert_allclose(below, np.broadcast_to(-truth, below.shape), atol=1e-9)
+
+
+def test_sphere_normals_towards_viewpoint():
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(3000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    points = 50.0 * d + [1.0, 2.0, 3.0]
+    n = estimate_normals(points, k=12, viewpoint=[1.0, 2.0, 3.0])  # from the centre: inward
+    assert np.median((n * -d).sum(axis=1)) > 0.999 and np.all((n * -d).sum(axis=1) > 0.9)
+
+
+def test_few_neighbours_face_the_view_direction():
+    xyz = np.full((5, 5, 3), np.nan)
+    xyz[2, 2] = [0.0, 0.0, 5.0]
+    scan = FaceScan.from_range_image(xyz)
+    normals = estimate_normals(scan.points, grid=scan.grid, grid_shape=scan.grid_shape)
+    np.testing.assert_array_equal(normals, [[0, 0, 1]])
+
+
+def test_boundary_on_grid_is_the_incomplete_8_neighbourhood():
+    scan = plane_scan(10, 12)
+    keep = ~((scan.grid[:, 0] == 5) & (scan.grid[:, 1] == 6))  # a one-pixel hole
+    scan = scan.subset(keep)
+    b = boundary_mask(scan.points, grid=scan.grid, grid_shape=scan.grid_shape)
+    r, c = scan.grid[:, 0], scan.grid[:, 1]
+    rim = (r == 0) | (r == 9) | (c == 0) | (c == 11)
+    hole_edge = (np.abs(r - 5) <= 1) & (np.abs(c - 6) <= 1)
+    np.testing.assert_array_equal(b, rim | hole_edge)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_boundary_without_grid_finds_the_rim_of_a_disc(seed):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-30, 30, (8000, 2))
+    xy = xy[np.linalg.norm(xy, axis=1) < 30]
+    points = np.c_[xy, 0.01 * (xy**2).sum(axis=1)]  # a shallow cap, ~2.8 points / mm²
+    b = boundary_mask(points)
+    r = np.linalg.norm(xy, axis=1)
+    assert b[r > 29.6].mean() > 0.85  # the outermost ~0.6 spacing
+    assert b[r < 26].mean() < 0.03

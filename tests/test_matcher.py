@@ -1,0 +1,98 @@
+"""The matcher interface: templates on disk, ranking with tie-breaks, identification and verification."""
+
+import json
+import zipfile
+
+import numpy as np
+import pytest
+
+from facerec3d import FaceScan, ScanMeta
+from facerec3d.matching import Matcher, Template, rank
+
+
+class CentroidMatcher(Matcher):
+    """A toy matcher: similarity = −distance between centroids; tiebreak = number of probe points."""
+
+    name = "centroid"
+
+    def enroll(self, scan):
+        return Template(scan.meta.subject, scan.meta.scan_id, self.name, {"c": scan.points.mean(axis=0)},
+                        {"n": scan.n_points})
+
+    def score(self, probe, template):
+        p = self._probe(probe)
+        return -float(np.linalg.norm(p.arrays["c"] - template.arrays["c"]))
+
+
+class TiedMatcher(CentroidMatcher):
+    def scores(self, probe, templates):
+        s, _ = super().scores(probe, templates)
+        return s, np.array([t.attrs["n"] for t in templates])
+
+
+def scan(center, n=10, subject=None):
+    pts = np.asarray(center, float) + np.random.default_rng(0).normal(0, 1e-3, (n, 3))
+    pts -= pts.mean(axis=0) - center  # exact centroid
+    return FaceScan(pts, meta=ScanMeta(subject=subject, scan_id=f"{subject}-1"))
+
+
+def test_template_save_load(tmp_path):
+    arrays = {"x": np.arange(6, dtype=np.int16).reshape(2, 3), "y": np.zeros((0, 3), np.uint8),
+              "z": np.array([True, False])}
+    t = Template("s01", "s01-a", "demo", arrays, {"resolution": 0.1 + 0.2, "origin": [1.5, -2.0, 3.25], "name": "é",
+                                                  "none": None})
+    path = tmp_path / "t.npz"
+    t.save(path)
+    assert path.exists() and not (tmp_path / "t.npz.npz").exists()
+    u = Template.load(path)
+    assert (u.subject, u.scan_id, u.method, u.attrs) == (t.subject, t.scan_id, t.method, t.attrs)
+    assert u.arrays.keys() == t.arrays.keys()
+    for k in t.arrays:
+        assert u.arrays[k].dtype == t.arrays[k].dtype
+        np.testing.assert_array_equal(u.arrays[k], t.arrays[k])
+    with zipfile.ZipFile(path) as z, z.open("__template__.npy") as f:  # the metadata is a JSON string, not a pickle
+        assert np.lib.format.read_array(f, allow_pickle=False).dtype.kind == "U"
+    assert json.loads(str(np.load(path)["__template__"]))["method"] == "demo"
+    assert t.nbytes == 12 + 0 + 2
+
+
+def test_template_rejects_reserved_name_and_unjsonable_attrs(tmp_path):
+    for name in ("__template__", "file", "allow_pickle"):
+        with pytest.raises(ValueError):
+            Template(None, None, "m", {name: np.zeros(1)}).save(tmp_path / "a.npz")
+    with pytest.raises(ValueError):  # object arrays would need pickle
+        Template(None, None, "m", {"o": np.array([{}, None], dtype=object)}).save(tmp_path / "a.npz")
+    with pytest.raises(TypeError):
+        Template(None, None, "m", {}, {"bad": np.zeros(1)}).save(tmp_path / "b.npz")
+
+
+def test_rank_orders_by_score_and_breaks_near_ties():
+    s = np.array([-1.0, -0.5, -0.5 * (1 + 1e-12), -2.0, -0.5 * (1 + 1e-6)])
+    assert rank(s).tolist() == [1, 2, 4, 0, 3]
+    tb = np.array([0, 10, 50, 0, 99])
+    # 1 and 2 are tied (relative gap 1e-12): the larger tiebreak first; 4 is not tied (1e-6)
+    assert rank(s, tb).tolist() == [2, 1, 4, 0, 3]
+    assert rank(np.array([-np.inf, 1.0, -np.inf]), np.array([1, 0, 5])).tolist() == [1, 2, 0]
+
+
+def test_identify_verify_and_default_scores():
+    m = CentroidMatcher()
+    gallery = [m.enroll(scan([i * 10.0, 0, 0], subject=f"s{i}")) for i in range(5)]
+    probe = scan([21.0, 0, 0])
+    s, tb = m.scores(probe, gallery)
+    assert tb is None and s.shape == (5,)
+    top = m.identify(probe, gallery, k=3)
+    assert [i for i, _ in top] == [2, 3, 1]
+    assert top[0][1] == pytest.approx(-1.0)
+    prepared = m.prepare(probe)
+    assert m.identify(prepared, gallery, k=10) == m.identify(probe, gallery, k=10)
+    assert len(m.identify(probe, gallery, k=10)) == 5
+    assert m.verify(probe, gallery[2], threshold=-1.5)
+    assert not m.verify(probe, gallery[3], threshold=-1.5)
+    assert m.fit([probe], ["x"]) is m
+
+
+def test_identify_uses_tiebreak():
+    m = TiedMatcher()
+    gallery = [m.enroll(scan([1.0, 0, 0], n=5)), m.enroll(scan([-1.0, 0, 0], n=9)), m.enroll(scan([0, 3.0, 0]))]
+    assert [i for i, _ in m.identify(scan([0, 0, 0]), gallery)] == [1, 0, 2]
