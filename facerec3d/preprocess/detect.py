@@ -37,7 +37,7 @@ class DetectConfig:
     context_mm: float = 100.0  # points within this distance of a candidate are aligned
     min_coarse_inliers: float = 0.3  # least share of points near a candidate fitting the mean face (rigid)
     min_inliers: float = 0.5  # least share of the scan points near the nose that fit the full face model
-    max_nose_gap_mm: float = 3.0  # the fitted nose tip must lie this near a scan point
+    max_identity_rms: float = 2.0  # RMS of the fitted identity coefficients (prior N(0, 1)) beyond which no face is plausible
     tie_margin: float = 0.1  # a distinct placement this close to the best one also gets a full fit
     crop_radius_mm: float = 80.0  # the face is the sphere of this radius around the nose tip
     coarse: ModelFitConfig = field(default_factory=lambda: ModelFitConfig(
@@ -142,13 +142,19 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
     for f in finalists:
         near = scan.points[np.linalg.norm(scan.points - f.landmarks["nose_tip"], axis=1) <= config.context_mm]
         fits.append(fit_face_model(near, f.R, f.t, config.model))
-    fit = max(fits, key=lambda f: (f.inlier_fraction, -f.rms_mm))
+    plausible = [f for f in fits if identity_rms(f, config.model) <= config.max_identity_rms]
+    if not plausible:
+        raise FailureToAcquire(f"no plausible face: the face model fits only with identity coefficients of RMS "
+                               f"{min(identity_rms(f, config.model) for f in fits):.1f} (prior N(0, 1))", scan.meta.path)
+    fit = max(plausible, key=lambda f: (f.inlier_fraction, -f.rms_mm))
     if fit.inlier_fraction < config.min_inliers:
         raise FailureToAcquire(f"the face model does not fit ({fit.inlier_fraction:.0%} of points)", scan.meta.path)
-    gap = np.linalg.norm(scan.points - fit.landmarks["nose_tip"], axis=1).min()
-    if gap > config.max_nose_gap_mm:
-        raise FailureToAcquire(f"no nose: the fitted nose tip is {gap:.0f} mm from the surface", scan.meta.path)
     return Detection(fit.landmarks["nose_tip"], fit.R, fit.t, fit.landmarks, fit.rms_mm, fit.inlier_fraction)
+
+
+def identity_rms(fit: ModelFit, config: ModelFitConfig) -> float:
+    """RMS of a fit's identity coefficients, in prior standard deviations (a wall or a wrong place needs > 2)."""
+    return float(np.sqrt(np.mean(fit.coefficients[: config.identity_modes] ** 2)))
 
 
 def crop_sphere(scan: FaceScan, center: np.ndarray, radius_mm: float = 80.0) -> FaceScan:
