@@ -96,3 +96,16 @@ def test_cli_evaluate_and_compare(dataset, runs, tmp_path):
     assert (tmp_path / "cmp" / "compare.html").is_file()
     r = CliRunner().invoke(main, ["evaluate", str(tmp_path / "nothing-here.csv"), "--out", str(tmp_path / "x")])
     assert r.exit_code == 2
+
+
+def test_icp_identifies_40_subjects_from_neutral_scans(tmp_path):
+    """Issue 4's criterion: 40 subjects, neutral gallery, neutral probes: rank-1 100%, genuine and impostor apart."""
+    data = tmp_path / "d"
+    write_dataset(data, DatasetConfig(subjects=40, scans=2, seed=9, scanner=SMALL), "abs")
+    m = evaluate(data, "icp", tmp_path / "run", jobs=2, cache=tmp_path / "cache", progress=False)
+    assert m["n_probes"] == 40 and m["failures"] == 0
+    assert m["rank1"] == 1.0
+    rows = read_score_rows(tmp_path / "run" / "scores.txt")
+    genuine = [s for c, r, s in zip(rows.claimed_id, rows.real_id, rows.score) if c == r]
+    impostor = [s for c, r, s in zip(rows.claimed_id, rows.real_id, rows.score) if c != r]
+    assert len(genuine) == 40 and min(genuine) > max(impostor)
