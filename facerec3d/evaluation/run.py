@@ -17,13 +17,14 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from facerec3d.datasets.catalog import open_dataset
 from facerec3d.evaluation.protocols import split
 from facerec3d.evaluation.report import write_run
 from facerec3d.matching.base import Matcher, Template
-from facerec3d.preprocess.batch import preprocess_files
+from facerec3d.preprocess.batch import one_thread_per_process, preprocess_files
 from facerec3d.preprocess.pipeline import PreprocessConfig
 
 
@@ -41,7 +42,9 @@ DEFAULT_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) /
 _worker: dict = {}
 
 
-def _init_worker(matcher: Matcher, gallery: list[Template]) -> None:
+def _init_worker(matcher: Matcher, gallery: list[Template], single_thread: bool = False) -> None:
+    if single_thread:
+        one_thread_per_process()
     _worker["matcher"], _worker["gallery"] = matcher, gallery
 
 
@@ -84,12 +87,13 @@ def evaluate(data: str | Path, method: str = "icp", out: str | Path = "run", pro
     t0 = time.perf_counter()
     prepared = [faces[i] for i in probes]
     if jobs > 1 and len(prepared) > 1:
-        with ProcessPoolExecutor(jobs, initializer=_init_worker, initargs=(matcher, gallery)) as pool:
+        with ProcessPoolExecutor(jobs, initializer=_init_worker, initargs=(matcher, gallery, True)) as pool:
             rows = list(tqdm(pool.map(_match, prepared, chunksize=1), total=len(prepared), desc="matching",
                              unit="probe", disable=not progress))
     else:
         _init_worker(matcher, gallery)
-        rows = [_match(p) for p in tqdm(prepared, desc="matching", unit="probe", disable=not progress)]
+        with threadpool_limits(1):
+            rows = [_match(p) for p in tqdm(prepared, desc="matching", unit="probe", disable=not progress)]
     S = np.array([r[0] for r in rows]).reshape(len(probes), len(gallery))
     tiebreak = np.array([r[1] for r in rows]).reshape(S.shape)
     if sp.exclude_self:

@@ -63,6 +63,13 @@ def preprocess_file(path: str | Path, config: PreprocessConfig = PreprocessConfi
     return outcome
 
 
+def one_thread_per_process() -> None:
+    """Worker initialiser: one BLAS/OpenMP thread per process, so N processes use N cores, not N²."""
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1)
+
+
 def _run(args: tuple[str, PreprocessConfig, str | None]) -> Outcome:
     return preprocess_file(*args)
 
@@ -72,7 +79,10 @@ def preprocess_files(paths: Sequence[str | Path], config: PreprocessConfig = Pre
     """Outcomes in the order of `paths`, computed by `jobs` processes (reusing `cache` when given)."""
     work = [(str(p), config, None if cache is None else str(cache)) for p in paths]
     if jobs <= 1 or len(work) <= 1:
-        yield from map(_run, work)
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(1):
+            yield from map(_run, work)
         return
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
+    with ProcessPoolExecutor(max_workers=jobs, initializer=one_thread_per_process) as pool:
         yield from pool.map(_run, work, chunksize=1)
