@@ -16,9 +16,9 @@ from functools import lru_cache
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
-from facerec3d.datasets.model import load_model
-from facerec3d.datasets.model import FIDUCIAL_LANDMARK68
+from facerec3d.datasets.model import FIDUCIAL_LANDMARK68, load_model
 
 
 def rotation_to_z(normal: np.ndarray) -> np.ndarray:
@@ -111,16 +111,6 @@ class ModelFit:
     coefficients: np.ndarray
 
 
-def _small_rotation(w: np.ndarray) -> np.ndarray:
-    """The rotation matrix of the rotation vector w (radians), by Rodrigues' formula."""
-    theta = np.linalg.norm(w)
-    if theta < 1e-15:
-        return np.eye(3)
-    k = w / theta
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * K @ K
-
-
 def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: ModelFitConfig = ModelFitConfig()) -> ModelFit:
     """Fit pose, identity and expression of the morphable model to scan points (mm), from x -> R x + t.
 
@@ -155,7 +145,7 @@ def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: Mod
         r = np.einsum("ij,ij->i", nrm, p - V[j])
         J = np.concatenate([np.cross(p, nrm), nrm, -np.einsum("ij,ijk->ik", nrm, fb.basis[j])], axis=1)
         x = np.linalg.solve(J.T @ J + np.diag(reg), -(J.T @ r) - reg * np.concatenate([np.zeros(6), c]))
-        dR = _small_rotation(x[:3])
+        dR = Rotation.from_rotvec(x[:3]).as_matrix()
         R, t = dR @ R, dR @ t + x[3:6]
         if K:
             c = c + x[6:]
