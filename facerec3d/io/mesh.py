@@ -121,8 +121,6 @@ def read_mesh(path: str | Path) -> FaceScan:
 
     suffix = Path(path).suffix.lower().lstrip(".")
     data = read_bytes(path)
-    if suffix in ("obj", "off"):  # text formats: make them valid UTF-8 so trimesh never guesses the encoding
-        data = data.decode("utf-8", errors="replace").encode("utf-8")
     normals = colors = None
     with library_errors(path, f"{suffix.upper()} file"):
         geometry = trimesh.load(io.BytesIO(data), file_type=suffix, process=False)
