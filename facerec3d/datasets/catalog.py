@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from facerec3d.errors import FaceRec3DError
+from facerec3d.io import scan_stem
 
 FRGC_PATTERN = re.compile(r"^(?P<subject>\d+)d(?P<seq>\d+)\.abs(\.gz)?$", re.IGNORECASE)
 BOSPHORUS_PATTERN = re.compile(r"^(?P<subject>bs\d+)_(?P<type>[A-Z]+)_(?P<sub>[A-Za-z0-9]+)_(?P<k>\d+)\.bnt$", re.IGNORECASE)
@@ -129,7 +130,7 @@ def read_manifest(path: str | Path) -> Dataset:
         if role not in (None, "gallery", "probe"):
             raise DatasetError(f"{path}, line {line}: role must be gallery or probe, not {role!r}")
         kind = None if expression is None else ("neutral" if expression == "neutral" else "expression")
-        records.append(ScanRecord(p, row["subject"].strip(), _scan_id(p), expression, kind, label,
+        records.append(ScanRecord(p, row["subject"].strip(), scan_stem(p), expression, kind, label,
                                   row.get("session") or None, role))
     return Dataset(tuple(records), "manifest", path)
 
@@ -140,7 +141,3 @@ def _expression_class(value: str | None) -> str | None:
     if not value:
         return None
     return "neutral" if value in ("neutral", "n", "blank") else "non-neutral"
-
-
-def _scan_id(path: Path) -> str:
-    return Path(path.name.removesuffix(".gz")).stem
