@@ -9,7 +9,6 @@ import sys
 from pathlib import Path
 
 import click
-import numpy as np
 
 from facerec3d.errors import FaceRec3DError
 
@@ -77,14 +76,23 @@ def convert(src, dst):
 @click.option("--format", "fmt", type=click.Choice(["abs", "bnt"]), default="abs", show_default=True,
               help="FRGC (.abs.gz in nd1/<session>/) or Bosphorus (.bnt) layout.")
 @click.option("--seed", default=0, show_default=True)
+@click.option("--first-subject", default=0, show_default=True,
+              help="Number of the first subject: a training set disjoint from the default test set starts at, "
+                   "say, 1000 (identities depend on seed and subject number).")
+@click.option("--expressions", help="Comma-separated expressions drawn for the expression scans "
+              "(of smile, open-mouth, surprise, frown, puffed-cheeks; default all).")
+@click.option("--expression-strength", nargs=2, type=float, default=(0.6, 1.0), show_default=True,
+              help="Range (low high) of the expression strength; 1 1 is full strength.")
 @click.option("--rows", default=480, show_default=True, help="Range image rows.")
 @click.option("--cols", default=640, show_default=True, help="Range image columns.")
 @friendly
-def synth(out, subjects, scans, fmt, seed, rows, cols):
+def synth(out, subjects, scans, fmt, seed, first_subject, expressions, expression_strength, rows, cols):
     """Write a synthetic dataset of range scans with ground truth to OUT."""
-    from facerec3d.datasets.synthetic import DatasetConfig, ScannerConfig, write_dataset
+    from facerec3d.datasets.synthetic import EXPRESSIONS, DatasetConfig, ScannerConfig, write_dataset
 
-    cfg = DatasetConfig(subjects=subjects, scans=scans, seed=seed,
+    chosen = tuple(e.strip() for e in expressions.split(",") if e.strip()) if expressions else EXPRESSIONS
+    cfg = DatasetConfig(subjects=subjects, scans=scans, seed=seed, first_subject=first_subject, expressions=chosen,
+                        expression_strength=tuple(expression_strength),
                         scanner=ScannerConfig(rows=rows, cols=cols, focal_px=1450.0 * cols / 640))
     manifest = write_dataset(out, cfg, fmt, progress=True)
     click.echo(f"wrote {subjects * scans} scans; manifest and ground truth: {manifest}")
@@ -173,7 +181,14 @@ def _print_metrics(m: dict) -> None:
 
 @main.command()
 @click.argument("data", type=click.Path(exists=True))
-@click.option("--method", default="icp", show_default=True, help="Matching method.")
+@click.option("--method", default="icp", show_default=True,
+              help="Matching method: icp, pca, lda, curvature, region-icp, keypoints, fusion.")
+@click.option("--method-config", type=click.Path(exists=True, dir_okay=False),
+              help="TOML or JSON file of the method's settings (its config dataclass's fields).")
+@click.option("--train", type=click.Path(exists=True),
+              help="Training dataset (subjects not in DATA) for learnt methods (pca, lda).")
+@click.option("--model", type=click.Path(exists=True, dir_okay=False),
+              help="Saved model (a run's model.npz) instead of --method/--train.")
 @click.option("--out", "out", required=True, type=click.Path(file_okay=False), help="Run folder to write.")
 @click.option("--protocol", type=click.Choice(["frgc", "bosphorus", "roles", "all-vs-all"]),
               help="Default: from the dataset (Bosphorus folder, manifest roles, else FRGC).")
@@ -181,13 +196,16 @@ def _print_metrics(m: dict) -> None:
 @click.option("--config", "config_file", type=click.Path(dir_okay=False), help="TOML or JSON preprocessing settings.")
 @click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
 @friendly
-def evaluate(data, method, out, protocol, jobs, config_file, cache):
+def evaluate(data, method, method_config, train, model, out, protocol, jobs, config_file, cache):
     """Evaluate a method on DATA (FRGC or Bosphorus folder, or manifest CSV): metrics, scores, plots, report."""
+    from facerec3d.config import read_settings
     from facerec3d.evaluation.run import DEFAULT_CACHE, evaluate as run
     from facerec3d.preprocess import PreprocessConfig
 
     config = PreprocessConfig.load(config_file) if config_file else PreprocessConfig()
-    m = run(data, method, out, protocol, jobs, cache or DEFAULT_CACHE, config)
+    options = read_settings(method_config) if method_config else None
+    m = run(data, method, out, protocol, jobs, cache or DEFAULT_CACHE, config, options=options, train=train,
+            model=model)
     _print_metrics(m)
     click.echo(f"report: {Path(out) / 'report.html'}")
 

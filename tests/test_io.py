@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from plyfile import PlyData
 
 from facerec3d import FaceScan, ScanFormatError
-from facerec3d.io import SUPPORTED_SUFFIXES, load_landmarks_lm3, load_scan, save_scan, write_lm3, write_ply
+from facerec3d.io import SUPPORTED_SUFFIXES, load_landmarks_lm3, load_scan, save_scan, write_ply
 
 
 def range_image_scan(rows=12, cols=16, invalid=((0, 0), (5, 7), (11, 15)), seed=1) -> FaceScan:

@@ -96,3 +96,55 @@ def test_identify_uses_tiebreak():
     m = TiedMatcher()
     gallery = [m.enroll(scan([1.0, 0, 0], n=5)), m.enroll(scan([-1.0, 0, 0], n=9)), m.enroll(scan([0, 3.0, 0]))]
     assert [i for i, _ in m.identify(scan([0, 0, 0]), gallery)] == [1, 0, 2]
+
+
+class LearntMatcher(CentroidMatcher):
+    """A toy learnt matcher: fit stores the training centroids' mean, subtracted at enrolment."""
+
+    name = "learnt"
+
+    def __init__(self):
+        self.offset = None
+
+    def fit(self, scans, subjects):
+        self.offset = np.mean([s.points.mean(axis=0) for s in scans], axis=0)
+        return self
+
+    def state(self):
+        return {"offset": self.offset}, {"n": 1}
+
+    def set_state(self, arrays, attrs):
+        assert attrs == {"n": 1}
+        self.offset = arrays["offset"]
+
+
+def test_matcher_settings_and_learnt_state_survive_save_and_load(tmp_path, monkeypatch):
+    from facerec3d.matching import registry
+
+    m = registry.make_matcher("icp", {"variant": "point-to-plane", "fine_points": 500})
+    assert (m.config.variant, m.config.fine_points) == ("point-to-plane", 500)
+    m.save(tmp_path / "icp.npz")
+    assert registry.load_matcher(tmp_path / "icp.npz").config == m.config
+    with pytest.raises(ValueError, match="unknown ICPConfig settings: colour"):
+        registry.make_matcher("icp", {"colour": 1})
+    with pytest.raises(ValueError, match="unknown method 'nope'"):
+        registry.make_matcher("nope")
+
+    monkeypatch.setitem(registry.METHODS, "learnt", f"{__name__}:LearntMatcher")
+    rng = np.random.default_rng(0)
+    learnt = LearntMatcher().fit([FaceScan(rng.normal(size=(50, 3)) + 5) for _ in range(3)], ["a", "b", "c"])
+    learnt.save(tmp_path / "learnt.npz")
+    back = registry.load_matcher(tmp_path / "learnt.npz")
+    assert isinstance(back, LearntMatcher)
+    np.testing.assert_array_equal(back.offset, learnt.offset)
+    assert not zipfile.ZipFile(tmp_path / "learnt.npz").testzip()
+
+
+def test_a_file_that_is_not_a_model_is_refused_by_name(tmp_path):
+    from facerec3d.errors import FaceRec3DError
+    from facerec3d.matching.registry import load_matcher
+
+    bad = tmp_path / "model.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(FaceRec3DError, match="model.npz: not a facerec3d model file"):
+        load_matcher(bad)

@@ -77,3 +77,16 @@ def test_frgc_names_sessions_and_manifest_roles(tmp_path):
     m.write_text("path,who\nx.abs,1\n")
     with pytest.raises(DatasetError, match="path,subject"):
         open_dataset(m)
+
+
+def test_a_training_set_from_first_subject_is_disjoint_and_expressions_are_chosen():
+    from facerec3d.datasets.synthetic import plan_dataset, subject_id
+
+    test = plan_dataset(DatasetConfig(subjects=10, scans=5))
+    train = plan_dataset(DatasetConfig(subjects=10, scans=5, first_subject=1000, seed=1,
+                                       expressions=("open-mouth",), expression_strength=(1.0, 1.0)))
+    assert not {subject_id(s.subject) for s in test} & {subject_id(s.subject) for s in train}
+    moved = [s for s in train if s.expression != "neutral"]
+    assert moved and all(s.expression == "open-mouth" and s.strength == 1.0 for s in moved)
+    with pytest.raises(ValueError, match="unknown expressions"):
+        plan_dataset(DatasetConfig(expressions=("wink",)))

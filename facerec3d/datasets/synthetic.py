@@ -272,7 +272,9 @@ class DatasetConfig:
     subjects: int = 20
     scans: int = 4  # per subject; the first is always a near-frontal neutral scan
     seed: int = 0
-    expression_strength: tuple[float, float] = (0.6, 1.0)  # uniform range
+    first_subject: int = 0  # subject numbers first_subject.. (a disjoint training set starts after the test set)
+    expressions: tuple[str, ...] = EXPRESSIONS  # drawn uniformly for the "expression" scans
+    expression_strength: tuple[float, float] = (0.6, 1.0)  # uniform range of blendshape weights' scale
     yaw_probe: float = 25.0  # |yaw| of the "yaw" scans, degrees
     pose_jitter: float = 5.0  # σ of yaw/pitch/roll on the other scans, degrees
     max_pose: tuple[float, float, float] = (30.0, 20.0, 10.0)  # |yaw|, |pitch|, |roll| of the "pose" scans
@@ -282,14 +284,17 @@ class DatasetConfig:
 def plan_dataset(cfg: DatasetConfig) -> list[ScanSpec]:
     """The scan specifications of a dataset, deterministic for its seed."""
     specs = []
-    for subject in range(cfg.subjects):
+    unknown = set(cfg.expressions) - set(EXPRESSIONS)
+    if unknown or not cfg.expressions:
+        raise ValueError(f"unknown expressions {sorted(unknown)}: use some of {', '.join(EXPRESSIONS)}")
+    for subject in range(cfg.first_subject, cfg.first_subject + cfg.subjects):
         rng = np.random.default_rng([cfg.seed, subject, 31337])
         for k in range(cfg.scans):
             kind = SCAN_PLAN[k % len(SCAN_PLAN)]
             yaw, pitch, roll = rng.normal(0.0, cfg.pose_jitter, 3) * (0.4 if k == 0 else 1.0)
             expression, strength = "neutral", 1.0
             if kind == "expression":
-                expression = EXPRESSIONS[rng.integers(len(EXPRESSIONS))]
+                expression = cfg.expressions[rng.integers(len(cfg.expressions))]
                 strength = rng.uniform(*cfg.expression_strength)
             elif kind == "yaw":
                 yaw = cfg.yaw_probe * rng.choice([-1.0, 1.0])

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Mapping
+from typing import Any
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -23,19 +24,12 @@ from tqdm import tqdm
 from facerec3d.datasets.catalog import open_dataset
 from facerec3d.evaluation.protocols import split
 from facerec3d.evaluation.report import write_run
+from facerec3d.errors import FaceRec3DError
 from facerec3d.matching.base import Matcher, Template
+from facerec3d.matching.registry import load_matcher, make_matcher
 from facerec3d.preprocess.batch import one_thread_per_process, preprocess_files
 from facerec3d.preprocess.pipeline import PreprocessConfig
 
-
-def _icp() -> Matcher:
-    from facerec3d.matching.icp import ICPMatcher
-
-    return ICPMatcher()
-
-
-#: Matching methods by name (`--method`).
-METHODS: dict[str, Callable[[], Matcher]] = {"icp": _icp}
 
 DEFAULT_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "facerec3d" / "preprocessed"
 
@@ -53,21 +47,58 @@ def _match(face) -> tuple[np.ndarray, np.ndarray]:
     return scores, (np.zeros_like(scores) if tiebreak is None else tiebreak)
 
 
+def _preprocess(paths: list, config: PreprocessConfig, jobs: int, cache, progress: bool, desc: str) -> list:
+    return list(tqdm(preprocess_files(paths, config, jobs, cache), total=len(paths), desc=desc, unit="scan",
+                     disable=not progress))
+
+
+def trained_matcher(method: str, options: Mapping[str, Any] | None = None, train: str | Path | None = None,
+                    model: str | Path | None = None, jobs: int = 1, cache: str | Path | None = DEFAULT_CACHE,
+                    config: PreprocessConfig = PreprocessConfig(), progress: bool = True) -> tuple[Matcher, dict]:
+    """A matcher ready to enrol: loaded from `model`, or built from (method, options) and fitted on the
+    dataset `train` (every scan that preprocesses; failures are skipped and counted).
+    Returns (matcher, info about the training)."""
+    if model is not None:
+        matcher = load_matcher(model)
+        return matcher, {"model": str(model)}
+    matcher = make_matcher(method, options)
+    if train is None:
+        if matcher.needs_training:
+            raise FaceRec3DError(f"method {method!r} learns from data: give a training set (--train DATA) "
+                                 "of subjects not in the test set, or a saved model (--model FILE)")
+        return matcher, {}
+    records = open_dataset(train).records
+    t0 = time.perf_counter()
+    outcomes = _preprocess([r.path for r in records], config, jobs, cache, progress, "training set")
+    kept = [(o.face, r.subject) for o, r in zip(outcomes, records) if o.face is not None]
+    if not kept:
+        raise FaceRec3DError(f"{train}: no training scan could be preprocessed")
+    matcher.fit([f for f, _ in kept], [s for _, s in kept])
+    return matcher, {"train": str(train), "n_train": len(kept), "train_failures": len(records) - len(kept),
+                     "n_train_subjects": len({s for _, s in kept}), "fit_s": time.perf_counter() - t0}
+
+
 def evaluate(data: str | Path, method: str = "icp", out: str | Path = "run", protocol: str | None = None,
              jobs: int = 1, cache: str | Path | None = DEFAULT_CACHE, config: PreprocessConfig = PreprocessConfig(),
-             progress: bool = True) -> dict:
-    """Evaluate `method` on the dataset at `data` and write the run folder `out`; returns metrics.json's content."""
-    if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}: use one of {', '.join(METHODS)}")
+             progress: bool = True, options: Mapping[str, Any] | None = None, train: str | Path | None = None,
+             model: str | Path | None = None) -> dict:
+    """Evaluate `method` (with config `options`) on the dataset at `data` and write the run folder `out`;
+    returns metrics.json's content. Learnt methods are fitted on the dataset `train` (and the model saved
+    as out/model.npz) or loaded from `model`."""
+    matcher, training = trained_matcher(method, options, train, model, jobs, cache, config, progress)
+    method = matcher.name
     dataset = open_dataset(data)
     sp = split(dataset, protocol)
     recs = dataset.records
     timings: dict[str, float] = {}
+    if "fit_s" in training:
+        timings["fit_s"] = training.pop("fit_s")
+        Path(out).mkdir(parents=True, exist_ok=True)
+        matcher.save(Path(out) / "model.npz")
 
     t0 = time.perf_counter()
     needed = sorted(set(sp.gallery) | set(sp.probes))
-    outcomes = list(tqdm(preprocess_files([recs[i].path for i in needed], config, jobs, cache), total=len(needed),
-                         desc="preprocessing", unit="scan", disable=not progress))
+    outcomes = _preprocess([recs[i].path for i in needed], config, jobs, cache, progress, "preprocessing")
     faces, failed = {}, []
     for i, outcome in zip(needed, outcomes):
         if outcome.face is None:
@@ -77,11 +108,11 @@ def evaluate(data: str | Path, method: str = "icp", out: str | Path = "run", pro
             faces[i] = outcome.face
     timings["preprocess_s"] = time.perf_counter() - t0
 
-    matcher = METHODS[method]()
     t0 = time.perf_counter()
     enrolled = [i for i in sp.gallery if i in faces]
     gallery = [matcher.enroll(faces[i]) for i in enrolled]
     timings["enrol_s"] = time.perf_counter() - t0
+    timings["enrol_ms"] = 1000 * timings["enrol_s"] / max(len(gallery), 1)
 
     probes = [i for i in sp.probes if i in faces]
     t0 = time.perf_counter()
@@ -108,7 +139,7 @@ def evaluate(data: str | Path, method: str = "icp", out: str | Path = "run", pro
         chosen = {sp.probes[k] for k in members}
         masks[name] = np.array([i in chosen for i in probes], dtype=bool)
         subset_failures[name] = len(chosen & failed_probe)
-    info = {"method": method, "protocol": sp.protocol, "dataset": str(data), "layout": dataset.layout,
+    info = {"method": method, "options": matcher.options(), **training, "protocol": sp.protocol, "dataset": str(data), "layout": dataset.layout,
             "n_gallery": len(gallery), "failures_to_enrol": sum(f["role"] == "gallery" for f in failed),
             "failed_scans": failed, "timings": timings, "jobs": jobs}
     return write_run(out, S, [recs[i].subject for i in probes], [recs[i].scan_id for i in probes],

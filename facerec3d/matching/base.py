@@ -3,6 +3,7 @@
 Scikit-learn-like and small:
 
     matcher.fit(training_scans, subjects)          # learnt matchers only
+    matcher.save("model.npz"); load_matcher("model.npz")   # settings + what fit learnt (registry)
     gallery = [matcher.enroll(scan) for scan in gallery_scans]
     probe = matcher.prepare(scan)                  # optional: done by score() when given a FaceScan
     matcher.identify(probe, gallery, k=5)          # [(gallery index, score), ...] best first
@@ -17,13 +18,14 @@ from __future__ import annotations
 
 import json
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field, is_dataclass
 from os import PathLike
 from typing import Any
 
 import numpy as np
 
+from facerec3d.config import from_dict
 from facerec3d.scan import FaceScan
 
 #: Relative score difference under which two scores count as tied (then the tiebreak decides).
@@ -81,13 +83,51 @@ def rank(scores: np.ndarray, tiebreak: np.ndarray | None = None, tolerance: floa
 
 
 class Matcher(ABC):
-    """Base class of face matchers. Subclasses set `name` and implement `enroll` and `score`."""
+    """Base class of face matchers. Subclasses set `name` and implement `enroll` and `score`.
+
+    A matcher with settings keeps them in `self.config`, an instance of its
+    dataclass `config_class`, given as the first argument of its constructor.
+    A matcher that learns (`fit`) returns what it learnt from `state()` and
+    takes it back in `set_state()`, so that `save` / `load_matcher` keep it.
+    """
 
     name: str = "matcher"
+    config_class: type | None = None
+
+    @classmethod
+    def from_options(cls, options: Mapping[str, Any] | None = None) -> "Matcher":
+        """A matcher whose config has these fields changed (a method config file's table)."""
+        if not options:
+            return cls()
+        if cls.config_class is None:
+            raise ValueError(f"method {cls.name!r} takes no options (given {sorted(options)})")
+        return cls(from_dict(cls.config_class, dict(options)))
+
+    def options(self) -> dict[str, Any]:
+        """The config as JSON-able fields (what `from_options` takes back)."""
+        config = getattr(self, "config", None)
+        return asdict(config) if is_dataclass(config) else {}
 
     def fit(self, scans: Sequence[FaceScan], subjects: Sequence[str]) -> "Matcher":
         """Learn from training scans (PCA, LDA); matchers that learn nothing return self."""
         return self
+
+    @property
+    def needs_training(self) -> bool:
+        """True when `fit` must be called (with `--train`) before enrolling."""
+        return False
+
+    def state(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """What `fit` learnt: (named arrays, JSON-able attributes); empty for matchers that learn nothing."""
+        return {}, {}
+
+    def set_state(self, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any]) -> None:
+        """Take back what `state()` returned."""
+
+    def save(self, path: str | PathLike) -> None:
+        """Write the method name, its settings and what it learnt to an .npz file (no pickle)."""
+        arrays, attrs = self.state()
+        Template(None, None, self.name, dict(arrays), {"options": self.options(), "state": attrs}).save(path)
 
     @abstractmethod
     def enroll(self, scan: FaceScan) -> Template:

@@ -255,6 +255,7 @@ class ICPMatcher(Matcher):
     """ICP identification and verification (§8.6.1): score = −MSE (mm²), tiebreak = correspondence count."""
 
     name = "icp"
+    config_class = ICPConfig
 
     def __init__(self, config: ICPConfig = ICPConfig()):
         self.config = config

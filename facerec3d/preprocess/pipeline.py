@@ -21,13 +21,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from facerec3d.config import from_dict, read_settings
 from facerec3d.preprocess.denoise import DenoiseConfig, denoise
 from facerec3d.preprocess.detect import DetectConfig, crop_sphere, detect_face
 from facerec3d.preprocess.holes import HoleConfig, fill_holes
@@ -57,31 +57,13 @@ class PreprocessConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "PreprocessConfig":
-        return _from_dict(cls, data)
+        return from_dict(cls, data)
 
     @classmethod
     def load(cls, path: str | Path) -> "PreprocessConfig":
         """A configuration from a TOML or JSON file holding some of the fields (nested by stage)."""
-        text = Path(path).read_bytes()
-        data = json.loads(text) if str(path).endswith(".json") else tomllib.loads(text.decode())
+        data = read_settings(path)
         return cls.from_dict(data.get("preprocess", data))
-
-
-def _from_dict(cls, data: dict[str, Any]):
-    """A dataclass from a (partial, nested) dict; unknown keys raise ValueError."""
-    known = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = set(data) - set(known)
-    if unknown:
-        raise ValueError(f"unknown {cls.__name__} settings: {', '.join(sorted(unknown))}")
-    values = {}
-    for name, value in data.items():
-        default = getattr(cls(), name)
-        if dataclasses.is_dataclass(default) and isinstance(value, dict):
-            value = _from_dict(type(default), value)
-        elif isinstance(default, tuple):
-            value = tuple(value)
-        values[name] = value
-    return cls(**values)
 
 
 class Preprocessor:
