@@ -108,3 +108,19 @@ def test_icp_identifies_40_subjects_from_neutral_scans(tmp_path):
     genuine = [s for c, r, s in zip(rows.claimed_id, rows.real_id, rows.score) if c == r]
     impostor = [s for c, r, s in zip(rows.claimed_id, rows.real_id, rows.score) if c != r]
     assert len(genuine) == 40 and min(genuine) > max(impostor)
+
+
+def test_cli_method_config_sets_the_matcher_and_bad_settings_are_one_line(dataset, runs, tmp_path):
+    out, _, _ = runs
+    good, bad = tmp_path / "p2plane.toml", tmp_path / "bad.toml"
+    good.write_text('variant = "point-to-plane"\nfine_points = 800\n')
+    bad.write_text('variant = "point-to-plane"\nfine_pionts = 800\n')
+    base = ["evaluate", str(dataset), "--jobs", "1", "--cache", str(out / "cache")]
+    r = CliRunner().invoke(main, base + ["--out", str(tmp_path / "p2p"), "--method-config", str(good)])
+    assert r.exit_code == 0, r.output
+    m = json.loads((tmp_path / "p2p" / "metrics.json").read_text())
+    assert m["options"]["variant"] == "point-to-plane" and m["options"]["fine_points"] == 800
+    assert m["subsets"]["neutral"]["rank1"] == 1.0
+    r = CliRunner().invoke(main, base + ["--out", str(tmp_path / "bad"), "--method-config", str(bad)])
+    assert r.exit_code == 2 and "unknown ICPConfig settings: fine_pionts" in r.output
+    assert "Traceback" not in r.output

@@ -1,0 +1,88 @@
+"""Every matching method on the same synthetic protocol, side by side (chapter §8.6–8.10).
+
+    python benchmarks/methods_bench.py [--subjects 60] [--scans 5] [--data bench-out/data] [--out bench-out/methods]
+        [--methods icp,pca,lda,curvature,region-icp,keypoints,fusion=examples/fusion-icp-region.toml] [--jobs 2]
+
+Three synthetic datasets (FRGC layout, made once under --data, then reused):
+`testN` (mixed expressions at 0.6–1.0 strength), `strongN` (the same
+subjects with open mouth, smile or surprise at full strength) and `trainN`
+(disjoint subjects, numbered from 1000, for the learnt methods: PCA, LDA
+and anything else whose `needs_training` is set). Each method is evaluated
+on the test and the strong set; one `compare` report per set holds every
+method's metrics and timings. The table printed at the end gives rank-1
+(neutral / non-neutral probes), EER and the time per comparison, as a ratio
+against ICP (the peer) measured in the same run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from facerec3d.config import read_settings
+from facerec3d.datasets.synthetic import DatasetConfig, write_dataset
+from facerec3d.evaluation.compare import compare_runs
+from facerec3d.evaluation.run import DEFAULT_CACHE, evaluate
+from facerec3d.matching.registry import make_matcher
+
+DEFAULT_METHODS = "icp,pca,lda,curvature,region-icp,keypoints,fusion=examples/fusion-icp-region.toml"
+
+
+def datasets(root: Path, subjects: int, scans: int) -> dict[str, Path]:
+    """The test, strong-expression and training sets (written when missing)."""
+    configs = {
+        f"test{subjects}": DatasetConfig(subjects=subjects, scans=scans),
+        f"strong{subjects}": DatasetConfig(subjects=subjects, scans=scans, expressions=("open-mouth", "smile", "surprise"),
+                                           expression_strength=(1.0, 1.0)),
+        f"train{subjects}": DatasetConfig(subjects=subjects, scans=scans, first_subject=1000, seed=1),
+    }
+    for name, cfg in configs.items():
+        if not (root / name / "manifest.csv").is_file():
+            t0 = time.perf_counter()
+            write_dataset(root / name, cfg, "abs", progress=True)
+            print(f"synthesised {name} in {time.perf_counter() - t0:.0f} s")
+    return {name: root / name for name in configs}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--subjects", type=int, default=60)
+    ap.add_argument("--scans", type=int, default=5)
+    ap.add_argument("--data", default="bench-out/data", help="Folder of the synthetic datasets.")
+    ap.add_argument("--out", default="bench-out/methods")
+    ap.add_argument("--methods", default=DEFAULT_METHODS, help="Comma-separated; NAME=CONFIG.toml gives settings.")
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--cache", default=str(DEFAULT_CACHE))
+    args = ap.parse_args()
+    sets = datasets(Path(args.data), args.subjects, args.scans)
+    test, strong, train = sets.values()
+    out = Path(args.out)
+    rows = []
+    for spec in args.methods.split(","):
+        method, _, config = spec.partition("=")
+        options = read_settings(config) if config else None
+        learnt = make_matcher(method, options).needs_training
+        label = Path(config).stem if config else method
+        for data in (test, strong):
+            t0 = time.perf_counter()
+            m = evaluate(data, method, out / f"{label}-{data.name}", jobs=args.jobs, cache=args.cache, progress=False,
+                         options=options, train=train if learnt else None)
+            s, t = m["subsets"], m["timings"]
+            rows.append((label, data.name, s["neutral"]["rank1"], s["non-neutral"]["rank1"], m["eer"], t["match_ms"],
+                         t["enrol_ms"], time.perf_counter() - t0))
+            print(f"{label} on {data.name}: done in {rows[-1][-1]:.0f} s", flush=True)
+    for data in (test, strong):
+        compare_runs(sorted(out.glob(f"*-{data.name}")), out / f"compare-{data.name}")
+    icp_ms = {r[1]: r[5] for r in rows if r[0] == "icp"}
+    print(f"\n{'method':<22}{'data':<10}{'neutral':>9}{'non-neut':>9}{'EER':>8}{'ms/cmp':>10}{'vs ICP':>9}"
+          f"{'enrol ms':>10}{'wall s':>8}")
+    for label, name, neutral, other, eer, ms, enrol, wall in rows:
+        ratio = f"{icp_ms[name] / ms:.0f}x" if name in icp_ms and ms > 0 else "-"
+        print(f"{label:<22}{name:<10}{neutral:>9.2%}{other:>9.2%}{eer:>8.2%}{ms:>10.4f}{ratio:>9}{enrol:>10.1f}"
+              f"{wall:>8.0f}")
+    print(f"\nreports: {', '.join(str(out / f'compare-{d.name}' / 'compare.html') for d in (test, strong))}")
+
+
+if __name__ == "__main__":
+    main()
