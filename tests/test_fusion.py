@@ -1,0 +1,148 @@
+"""Score normalisation and fusion (chapter §8.10) on hand-computed numbers; the fusion matcher."""
+
+import numpy as np
+import pytest
+
+from facerec3d.config import read_settings
+from facerec3d.matching.base import Template
+from facerec3d.matching.fusion import (FusionConfig, FusionMatcher, borda, fuse, hampel_location_scale, normalise,
+                                       pack, unpack)
+from facerec3d.matching.icp import ICPMatcher
+from facerec3d.matching.registry import load_matcher, make_matcher
+from facerec3d.matching.regions import RegionICPMatcher
+from tests.test_regions import model_face
+
+# two sources (rows) scoring three templates (columns)
+S = np.array([[1.0, 2.0, 4.0],
+              [3.0, 1.0, 2.0]])
+
+
+def test_min_max():
+    np.testing.assert_allclose(normalise([1.0, 2.0, 4.0], "min-max"), [0.0, 1 / 3, 1.0])
+    np.testing.assert_allclose(normalise([-np.inf, 1.0, 3.0], "min-max"), [0.0, 0.0, 1.0])  # no match = worst
+    np.testing.assert_allclose(normalise([5.0, 5.0], "min-max"), [0.5, 0.5])
+
+
+def test_z_score():
+    # mean 2, population std sqrt(2/3) = 0.8164966
+    np.testing.assert_allclose(normalise([1.0, 2.0, 3.0], "z-score"), [-1.2247449, 0.0, 1.2247449], atol=1e-7)
+    # parameters from a reference sample: mean 1, std 1
+    np.testing.assert_allclose(normalise([3.0], "z-score", reference=[0.0, 2.0]), [2.0])
+
+
+def test_tanh():
+    # ½(tanh(0.01 · ∓1.2247449) + 1); tanh(0.012247449) = 0.012246837
+    np.testing.assert_allclose(normalise([1.0, 2.0, 3.0], "tanh"), [0.49387658, 0.5, 0.50612342], atol=1e-8)
+
+
+def test_hampel_ignores_an_outlier():
+    # |x − median 3.5| = 2.5, 1.5, .5, .5, 1.5, 96.5: knees a = 2 (70 %), b = 26, c = 73; 100 is beyond c (weight 0)
+    # and the rest converge to their mean 3 (every |x − 3| <= a), σ = sqrt((4 + 1 + 0 + 1 + 4) / 5) = sqrt(2)
+    mu, sd = hampel_location_scale(np.array([1.0, 2.0, 3.0, 4.0, 5.0, 100.0]))
+    assert mu == pytest.approx(3.0, abs=1e-5) and sd == pytest.approx(np.sqrt(2.0), abs=1e-5)
+    # tanh-hampel of 5: ½(tanh(0.01 · 2/√2) + 1) = ½(tanh(0.014142136) + 1) = 0.50707060
+    assert normalise([5.0, 1.0, 2.0, 3.0, 4.0, 100.0], "tanh-hampel")[0] == pytest.approx(0.50707060, abs=1e-6)
+
+
+def test_sum_product_weighted():
+    # min-max rows: [0, 1/3, 1] and [1, 0, 1/2]
+    np.testing.assert_allclose(fuse(S, "sum", "min-max")[0], [1.0, 1 / 3, 1.5])
+    np.testing.assert_allclose(fuse(S, "product", "min-max")[0], [0.0, 0.0, 0.5])
+    np.testing.assert_allclose(fuse(S, "weighted-sum", "min-max", weights=[2.0, 1.0])[0], [1.0, 2 / 3, 2.5])
+    # z-score rows: [-1.0690450, -0.2672612, 1.3363062] and [1.2247449, -1.2247449, 0]
+    np.testing.assert_allclose(fuse(S, "sum", "z-score")[0], [0.1556999, -1.4920061, 1.3363062], atol=1e-6)
+    with pytest.raises(ValueError):
+        fuse(S, "product", "z-score")  # negative normalised scores
+    with pytest.raises(ValueError):
+        fuse(S, "weighted-sum", "min-max", weights=[1.0])
+
+
+def test_borda_and_consensus():
+    # source 0 ranks t2, t1, t0 (points 0, 1, 2 for t0, t1, t2); source 1 ranks t0, t2, t1 (points 2, 0, 1)
+    np.testing.assert_allclose(borda(S), [2.0, 1.0, 3.0])
+    np.testing.assert_allclose(fuse(S, "borda")[0], [2.0, 1.0, 3.0])
+    np.testing.assert_allclose(borda(S, top=1), [1.0, 0.0, 1.0])  # only each source's best gets a point
+    np.testing.assert_allclose(borda([[1.0, 1.0, 0.0]]), [1.5, 1.5, 0.0])  # a tie shares the average rank
+    votes, tiebreak = fuse(S, "consensus")
+    np.testing.assert_allclose(votes, [1.0, 0.0, 1.0])  # t2 (source 0) and t0 (source 1) are voted first
+    np.testing.assert_allclose(tiebreak, [2.0, 1.0, 3.0])  # the Borda count prefers t2
+
+
+def test_pack_unpack():
+    a = Template("s1", "x", "icp", {"points": np.zeros((2, 3)), "n": np.arange(3)}, {"k": 1})
+    b = Template("s1", "x", "pca", {"points": np.ones(4)}, {"k": 2})
+    back = unpack(pack([a, b], "fusion"))
+    assert [t.method for t in back] == ["icp", "pca"] and [t.attrs for t in back] == [{"k": 1}, {"k": 2}]
+    np.testing.assert_array_equal(back[0].arrays["n"], np.arange(3))
+    np.testing.assert_array_equal(back[1].arrays["points"], np.ones(4))
+
+
+@pytest.fixture(scope="module")
+def faces():
+    gallery = [model_face(s) for s in range(5)]
+    probes = [model_face(s, "smile") for s in range(5)]
+    return gallery, probes
+
+
+def test_fusion_matcher_combines_members(tmp_path, faces):
+    gallery, probes = faces
+    path = tmp_path / "fusion.toml"
+    path.write_text('members = ["icp", "region-icp"]\nnormalisation = "min-max"\nrule = "weighted-sum"\n'
+                    'weights = [1.0, 2.0]\n[member_options.region-icp]\nregions = ["nose"]\n')
+    m = make_matcher("fusion", read_settings(path))
+    assert isinstance(m.members[0], ICPMatcher) and isinstance(m.members[1], RegionICPMatcher)
+    assert m.members[1].config.regions == ("nose",) and m.config.weights == (1.0, 2.0)
+    templates = [m.enroll(g) for g in gallery]
+    icp_t = [ICPMatcher().enroll(g) for g in gallery]
+    icp = ICPMatcher().scores(probes[3], icp_t)[0]
+    nose = m.members[1].scores(probes[3], [unpack(t)[1] for t in templates])[0]
+    fused, _ = m.scores(probes[3], templates)
+    # weighted sum of the members' min-max normalised scores, computed here by hand from their raw scores
+    expected = (icp - icp.min()) / (icp.max() - icp.min()) + 2 * (nose - nose.min()) / (nose.max() - nose.min())
+    np.testing.assert_allclose(fused, expected)
+    assert int(np.argmax(fused)) == 3
+    for k, p in enumerate(probes):
+        assert int(np.argmax(m.scores(p, templates)[0])) == k
+    m.save(tmp_path / "model.npz")
+    back = load_matcher(tmp_path / "model.npz")
+    assert isinstance(back, FusionMatcher) and back.config == m.config and back.options() == m.options()
+    np.testing.assert_allclose(back.scores(probes[3], templates)[0], fused)
+
+
+def test_fusion_config_is_checked():
+    with pytest.raises(ValueError):
+        FusionConfig(members=("icp",), rule="product", normalisation="z-score")
+    with pytest.raises(ValueError):
+        FusionConfig(members=("icp",), member_options={"pca": {}})
+    with pytest.raises(ValueError):
+        FusionConfig(members=())
+
+
+class _Learner(ICPMatcher):
+    """An ICP matcher that 'learns' the training subjects' count, to check that fusion keeps members' state."""
+
+    name = "icp"
+
+    def fit(self, scans, subjects):
+        self.learnt = np.array([len(set(subjects))])
+        return self
+
+    def state(self):
+        return {"count": self.learnt}, {"subjects": int(self.learnt[0])}
+
+    def set_state(self, arrays, attrs):
+        self.learnt = np.asarray(arrays["count"])
+        assert attrs == {"subjects": int(self.learnt[0])}
+
+
+def test_fusion_fits_members_and_keeps_their_state(faces):
+    gallery, _ = faces
+    m = FusionMatcher(FusionConfig(members=("icp", "region-icp")))
+    m.members[0] = _Learner()
+    m.fit(gallery, ["a", "b", "b", "c", "c"])
+    arrays, attrs = m.state()
+    assert list(arrays) == ["0__count"] and attrs == {"members": [{"subjects": 3}, {}]}
+    other = FusionMatcher(FusionConfig(members=("icp", "region-icp")))
+    other.members[0] = _Learner()
+    other.set_state(arrays, attrs)
+    np.testing.assert_array_equal(other.members[0].learnt, [3])
