@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import functools
 import os
+import sqlite3
 import sys
 from pathlib import Path
 
@@ -20,7 +21,7 @@ def friendly(fn):
     def wrapper(*args, **kwargs):
         try:
             return fn(*args, **kwargs)
-        except (FaceRec3DError, OSError, ValueError) as e:
+        except (FaceRec3DError, OSError, ValueError, sqlite3.Error) as e:
             click.echo(f"error: {e}", err=True)
             sys.exit(2)
 
@@ -163,6 +164,27 @@ def preprocess(inputs, outdir, config_file, fmt, jobs):
     click.echo(f"{len(inputs) - failed} kept, {failed} failed; landmarks in {out / 'landmarks.csv'}")
 
 
+def _engine_options(fn):
+    """--jobs and --scheduler, shared by the commands that match."""
+    fn = click.option("--scheduler", help="Dask scheduler address (e.g. tcp://host:8786): shard the gallery over "
+                      "its workers instead of local processes (pip install 'facerec3d[distributed]').")(fn)
+    return click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores",
+                        help="Processes to use (the gallery is split into one shard per process).")(fn)
+
+
+def _cascade_options(fn):
+    fn = click.option("--shortlist", default=20, show_default=True,
+                      help="With --cascade: faces passed from the depth screen to full ICP.")(fn)
+    return click.option("--cascade", is_flag=True, help="ICP only: screen the gallery by a depth descriptor and run "
+                        "full ICP on the shortlist only (faces off it score -inf).")(fn)
+
+
+def _cascade_config(cascade: bool, shortlist: int):
+    from facerec3d.gallery.cascade import CascadeConfig
+
+    return CascadeConfig(shortlist=shortlist) if cascade else None
+
+
 def _print_metrics(m: dict) -> None:
     from facerec3d.evaluation.report import format_value
 
@@ -174,7 +196,8 @@ def _print_metrics(m: dict) -> None:
     t = m.get("timings", {})
     click.echo(f"gallery {m['n_gallery']}, failures to enrol {m.get('failures_to_enrol', 0)}; "
                f"preprocess {t.get('preprocess_s', 0):.1f} s, enrol {t.get('enrol_s', 0):.1f} s, "
-               f"match {t.get('match_s', 0):.1f} s ({t.get('match_ms', 0):.1f} ms per comparison)")
+               f"match {t.get('match_s', 0):.1f} s ({t.get('prepare_ms', 0):.1f} ms to prepare a probe, "
+               f"{t.get('match_ms', 0):.4g} ms per comparison)")
     for f in m.get("failed_scans", []):
         click.echo(f"failed ({f['role']}): {f['path']}: {f['reason']}")
 
@@ -192,11 +215,13 @@ def _print_metrics(m: dict) -> None:
 @click.option("--out", "out", required=True, type=click.Path(file_okay=False), help="Run folder to write.")
 @click.option("--protocol", type=click.Choice(["frgc", "bosphorus", "roles", "all-vs-all"]),
               help="Default: from the dataset (Bosphorus folder, manifest roles, else FRGC).")
-@click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", help="Processes to use.")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False), help="TOML or JSON preprocessing settings.")
 @click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
+@_cascade_options
+@_engine_options
 @friendly
-def evaluate(data, method, method_config, train, model, out, protocol, jobs, config_file, cache):
+def evaluate(data, method, method_config, train, model, out, protocol, config_file, cache, cascade, shortlist, jobs,
+             scheduler):
     """Evaluate a method on DATA (FRGC or Bosphorus folder, or manifest CSV): metrics, scores, plots, report."""
     from facerec3d.config import read_settings
     from facerec3d.evaluation.run import DEFAULT_CACHE, evaluate as run
@@ -205,9 +230,156 @@ def evaluate(data, method, method_config, train, model, out, protocol, jobs, con
     config = PreprocessConfig.load(config_file) if config_file else PreprocessConfig()
     options = read_settings(method_config) if method_config else None
     m = run(data, method, out, protocol, jobs, cache or DEFAULT_CACHE, config, options=options, train=train,
-            model=model)
+            model=model, scheduler=scheduler, cascade=_cascade_config(cascade, shortlist))
     _print_metrics(m)
     click.echo(f"report: {Path(out) / 'report.html'}")
+
+
+@main.command()
+@click.argument("data", nargs=-1, required=True, type=click.Path(exists=True))
+@click.option("--gallery", "gallery", required=True, type=click.Path(dir_okay=False),
+              help="Gallery store (SQLite file; made if missing).")
+@click.option("--method", default="icp", show_default=True, help="Matching method (as for evaluate).")
+@click.option("--method-config", type=click.Path(exists=True, dir_okay=False), help="TOML or JSON method settings.")
+@click.option("--train", type=click.Path(exists=True), help="Training dataset for learnt methods (pca, lda).")
+@click.option("--model", type=click.Path(exists=True, dir_okay=False), help="Saved model instead of --method/--train.")
+@click.option("--config", "config_file", type=click.Path(dir_okay=False), help="TOML or JSON preprocessing settings.")
+@click.option("--subject", help="Subject of scan files whose names do not say it (default: the file stem).")
+@click.option("--gallery-only", is_flag=True, help="Of a dataset, enrol only its protocol's gallery scans.")
+@click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
+@_engine_options
+@friendly
+def enroll(data, gallery, method, method_config, train, model, config_file, subject, gallery_only, cache, jobs,
+           scheduler):
+    """Enrol scans DATA (files, dataset folders or manifests) into the gallery store, one transaction each;
+    scans that fail are recorded (failures to enrol) and the batch goes on."""
+    from tqdm import tqdm
+
+    from facerec3d.config import read_settings
+    from facerec3d.evaluation.run import DEFAULT_CACHE, trained_matcher
+    from facerec3d.gallery.engine import Engine
+    from facerec3d.gallery.service import enroll_scans, scan_records
+    from facerec3d.gallery.store import GalleryStore
+    from facerec3d.preprocess import PreprocessConfig
+
+    config = PreprocessConfig.load(config_file) if config_file else PreprocessConfig()
+    options = read_settings(method_config) if method_config else None
+    matcher, _ = trained_matcher(method, options, train, model, jobs, cache or DEFAULT_CACHE, config)
+    records = scan_records(data, subject, gallery_only)
+    with GalleryStore(gallery, create=True) as store, Engine.create(jobs, scheduler) as engine, \
+            tqdm(total=len(records), unit="scan", desc="enrolling") as bar:
+        def show(source, status):
+            bar.update()
+            if status not in ("enrolled", "skipped"):
+                tqdm.write(f"{source}: failed to enrol: {status}")
+
+        report = enroll_scans(store, records, matcher, config, engine, cache or DEFAULT_CACHE, show)
+        total = store.stats()["entries"]
+    click.echo(f"{report.enrolled} enrolled, {len(report.skipped)} already enrolled, {len(report.failures)} failed "
+               f"to enrol; {gallery}: {total} entries")
+
+
+@main.command()
+@click.argument("probe", type=click.Path(exists=True, dir_okay=False))
+@click.option("--gallery", "gallery", required=True, type=click.Path(dir_okay=False), help="Gallery store.")
+@click.option("-k", "k", default=5, show_default=True, help="Number of candidates to list.")
+@click.option("--config", "config_file", type=click.Path(dir_okay=False),
+              help="Preprocessing settings; must be the gallery's (default: the gallery's).")
+@click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
+@_cascade_options
+@_engine_options
+@friendly
+def identify(probe, gallery, k, config_file, cache, cascade, shortlist, jobs, scheduler):
+    """The k gallery entries most like scan PROBE, best first (rank, subject, scan, score)."""
+    from facerec3d.evaluation.run import DEFAULT_CACHE
+    from facerec3d.gallery.engine import Engine
+    from facerec3d.gallery.service import identify_scan
+    from facerec3d.gallery.store import GalleryStore
+    from facerec3d.preprocess import PreprocessConfig
+
+    config = PreprocessConfig.load(config_file) if config_file else None
+    with GalleryStore(gallery) as store, Engine.create(jobs, scheduler) as engine:
+        hits = identify_scan(store, probe, k, _cascade_config(cascade, shortlist), config, engine=engine,
+                             cache=cache or DEFAULT_CACHE)
+    click.echo(f"{'rank':>4}  {'subject':<12}{'scan':<20}{'score':>12}")
+    for r, (entry, score) in enumerate(hits, start=1):
+        click.echo(f"{r:>4}  {str(entry.subject):<12}{str(entry.scan_id):<20}{score:>12.4f}")
+
+
+@main.command()
+@click.argument("probe", type=click.Path(exists=True, dir_okay=False))
+@click.option("--gallery", "gallery", required=True, type=click.Path(dir_okay=False), help="Gallery store.")
+@click.option("--claim", required=True, help="The claimed subject ID.")
+@click.option("--threshold", type=float, help="Accept scores >= this (default for icp: -1.0 mm², the EER point "
+              "of the synthetic test60 protocol).")
+@click.option("--config", "config_file", type=click.Path(dir_okay=False),
+              help="Preprocessing settings; must be the gallery's (default: the gallery's).")
+@click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
+@friendly
+def verify(probe, gallery, claim, threshold, config_file, cache):
+    """Is scan PROBE the claimed subject? Prints accept/reject with the score; exit code 0 accept, 1 reject."""
+    from facerec3d.evaluation.run import DEFAULT_CACHE
+    from facerec3d.gallery.service import verify_scan
+    from facerec3d.gallery.store import GalleryStore
+    from facerec3d.preprocess import PreprocessConfig
+
+    config = PreprocessConfig.load(config_file) if config_file else None
+    with GalleryStore(gallery) as store:
+        accepted, score, threshold = verify_scan(store, probe, claim, threshold, config, cache or DEFAULT_CACHE)
+    click.echo(f"{'accept' if accepted else 'reject'}: claim {claim}, score {score:.4f} (threshold {threshold:g})")
+    sys.exit(0 if accepted else 1)
+
+
+@main.group()
+@click.argument("store", type=click.Path(dir_okay=False))
+@click.pass_context
+def gallery(ctx, store):
+    """Look after the gallery store STORE: list, remove ID, stats."""
+    ctx.obj = store
+
+
+@gallery.command("list")
+@click.pass_obj
+@friendly
+def gallery_list(store):
+    """The enrolled entries (id, subject, scan, source) and the failures to enrol."""
+    from facerec3d.gallery.store import GalleryStore
+
+    with GalleryStore(store) as s:
+        for e in s.entries():
+            click.echo(f"{e.id}\t{e.subject}\t{e.scan_id}\t{e.source}")
+        for source, reason in s.failures():
+            click.echo(f"failed\t{source}\t{reason}")
+
+
+@gallery.command("remove")
+@click.argument("ident")
+@click.pass_obj
+@friendly
+def gallery_remove(store, ident):
+    """Remove subject IDENT's entries (or else the entry of scan IDENT)."""
+    from facerec3d.gallery.store import GalleryError, GalleryStore
+
+    with GalleryStore(store) as s:
+        n = s.remove(ident)
+    if not n:
+        raise GalleryError(f"{store}: no subject or scan {ident!r}")
+    click.echo(f"removed {n} entr{'y' if n == 1 else 'ies'}")
+
+
+@gallery.command("stats")
+@click.pass_obj
+@friendly
+def gallery_stats(store):
+    """Entries, subjects, sizes, failures to enrol and the matcher."""
+    from facerec3d.gallery.store import GalleryStore
+
+    with GalleryStore(store) as s:
+        st = s.stats()
+    click.echo(f"{st['entries']} entries of {st['subjects']} subjects; "
+               f"templates {st['template_bytes'] / 2**20:.1f} MiB, "
+               f"file {st['file_bytes'] / 2**20:.1f} MiB; {st['failures_to_enrol']} failures to enrol; "
+               f"method {st['method']} {st['options']}")
 
 
 @main.command()

@@ -14,38 +14,25 @@ import os
 import time
 from collections.abc import Mapping
 from typing import Any
-from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from facerec3d.datasets.catalog import open_dataset
 from facerec3d.evaluation.protocols import split
 from facerec3d.evaluation.report import write_run
 from facerec3d.errors import FaceRec3DError
-from facerec3d.matching.base import Matcher, Template
+from facerec3d.gallery.cascade import CascadeConfig, check_cascadable
+from facerec3d.gallery.engine import Engine
+from facerec3d.matching.base import Matcher
 from facerec3d.matching.registry import load_matcher, make_matcher
-from facerec3d.preprocess.batch import one_thread_per_process, preprocess_files
+from facerec3d.preprocess.batch import preprocess_files
 from facerec3d.preprocess.pipeline import PreprocessConfig
 
 
 DEFAULT_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "facerec3d" / "preprocessed"
-
-_worker: dict = {}
-
-
-def _init_worker(matcher: Matcher, gallery: list[Template], single_thread: bool = False) -> None:
-    if single_thread:
-        one_thread_per_process()
-    _worker["matcher"], _worker["gallery"] = matcher, gallery
-
-
-def _match(face) -> tuple[np.ndarray, np.ndarray]:
-    scores, tiebreak = _worker["matcher"].scores(face, _worker["gallery"])
-    return scores, (np.zeros_like(scores) if tiebreak is None else tiebreak)
-
 
 def _preprocess(paths: list, config: PreprocessConfig, jobs: int, cache, progress: bool, desc: str) -> list:
     return list(tqdm(preprocess_files(paths, config, jobs, cache), total=len(paths), desc=desc, unit="scan",
@@ -81,11 +68,17 @@ def trained_matcher(method: str, options: Mapping[str, Any] | None = None, train
 def evaluate(data: str | Path, method: str = "icp", out: str | Path = "run", protocol: str | None = None,
              jobs: int = 1, cache: str | Path | None = DEFAULT_CACHE, config: PreprocessConfig = PreprocessConfig(),
              progress: bool = True, options: Mapping[str, Any] | None = None, train: str | Path | None = None,
-             model: str | Path | None = None) -> dict:
+             model: str | Path | None = None, scheduler=None, cascade: CascadeConfig | None = None) -> dict:
     """Evaluate `method` (with config `options`) on the dataset at `data` and write the run folder `out`;
     returns metrics.json's content. Learnt methods are fitted on the dataset `train` (and the model saved
-    as out/model.npz) or loaded from `model`."""
+    as out/model.npz) or loaded from `model`. Enrolment and matching run on a `gallery.engine.Engine`:
+    `jobs` processes, or the workers of a Dask `scheduler` (address or Client). With `cascade` (ICP only)
+    identification goes through the cascade (gallery.cascade): faces off the shortlist score −inf, and
+    metrics.json's "cascade" gives its settings and recall (share of probes of enrolled subjects whose
+    subject is on the shortlist)."""
     matcher, training = trained_matcher(method, options, train, model, jobs, cache, config, progress)
+    if cascade is not None:
+        check_cascadable(matcher)
     method = matcher.name
     dataset = open_dataset(data)
     sp = split(dataset, protocol)
@@ -108,30 +101,41 @@ def evaluate(data: str | Path, method: str = "icp", out: str | Path = "run", pro
             faces[i] = outcome.face
     timings["preprocess_s"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
     enrolled = [i for i in sp.gallery if i in faces]
-    gallery = [matcher.enroll(faces[i]) for i in enrolled]
-    timings["enrol_s"] = time.perf_counter() - t0
-    timings["enrol_ms"] = 1000 * timings["enrol_s"] / max(len(gallery), 1)
-
     probes = [i for i in sp.probes if i in faces]
-    t0 = time.perf_counter()
-    prepared = [faces[i] for i in probes]
-    if jobs > 1 and len(prepared) > 1:
-        with ProcessPoolExecutor(jobs, initializer=_init_worker, initargs=(matcher, gallery, True)) as pool:
-            rows = list(tqdm(pool.map(_match, prepared, chunksize=1), total=len(prepared), desc="matching",
-                             unit="probe", disable=not progress))
-    else:
-        _init_worker(matcher, gallery)
-        with threadpool_limits(1):
-            rows = [_match(p) for p in tqdm(prepared, desc="matching", unit="probe", disable=not progress)]
+    info_cascade = {}
+    with Engine.create(jobs, scheduler) as engine:
+        workers = engine.workers
+        t0 = time.perf_counter()
+        gallery = engine.enroll(matcher, [faces[i] for i in enrolled])
+        timings["enrol_s"] = time.perf_counter() - t0
+        timings["enrol_ms"] = 1000 * timings["enrol_s"] / max(len(gallery), 1)
+
+        t0 = time.perf_counter()
+        sharded = engine.load(matcher, gallery)
+        rows, prepare_s = [], 0.0
+        batch = 8 * engine.workers  # probes in flight at once (progress is shown per batch)
+        with tqdm(total=len(probes), desc="matching", unit="probe", disable=not progress) as bar:
+            for b in range(0, len(probes), batch):
+                t1 = time.perf_counter()
+                chunk = engine.prepare(matcher, [faces[i] for i in probes[b:b + batch]], cascade)
+                prepare_s += time.perf_counter() - t1
+                rows += sharded.scores(chunk) if cascade is None else sharded.cascade(chunk, cascade)
+                bar.update(len(chunk))
     S = np.array([r[0] for r in rows]).reshape(len(probes), len(gallery))
     tiebreak = np.array([r[1] for r in rows]).reshape(S.shape)
+    if cascade is not None:
+        enrolled_subjects = {recs[i].subject for i in enrolled}
+        hits = [recs[p].subject in {recs[enrolled[j]].subject for j in r[2]}
+                for p, r in zip(probes, rows) if recs[p].subject in enrolled_subjects]
+        info_cascade = {"cascade": {**asdict(cascade), "recall": float(np.mean(hits)) if hits else None}}
     if sp.exclude_self:
         S[np.equal.outer(probes, enrolled)] = np.nan
     match_s = time.perf_counter() - t0
     n_matches = max(S.size, 1)
-    timings.update(match_s=match_s, match_ms=1000 * match_s / n_matches, matches_per_s=n_matches / max(match_s, 1e-9))
+    # match_ms: per comparison, the probe's preparation (features, normals: once per probe) not included
+    timings.update(match_s=match_s, prepare_ms=1000 * prepare_s / max(len(probes), 1),
+                   match_ms=1000 * (match_s - prepare_s) / n_matches, matches_per_s=n_matches / max(match_s, 1e-9))
 
     failed_probe = {i for i in sp.probes if i not in faces}
     masks, subset_failures = {}, {}
@@ -141,7 +145,7 @@ def evaluate(data: str | Path, method: str = "icp", out: str | Path = "run", pro
         subset_failures[name] = len(chosen & failed_probe)
     info = {"method": method, "options": matcher.options(), **training, "protocol": sp.protocol, "dataset": str(data), "layout": dataset.layout,
             "n_gallery": len(gallery), "failures_to_enrol": sum(f["role"] == "gallery" for f in failed),
-            "failed_scans": failed, "timings": timings, "jobs": jobs}
+            "failed_scans": failed, "timings": timings, "jobs": jobs, "workers": workers, **info_cascade}
     return write_run(out, S, [recs[i].subject for i in probes], [recs[i].scan_id for i in probes],
                      [recs[i].subject for i in enrolled], info, tiebreak=tiebreak, subsets=masks,
                      n_failed=len(failed_probe), subset_failures=subset_failures)

@@ -13,32 +13,40 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 
-def _grid_neighbours(grid: np.ndarray, grid_shape: tuple[int, int], half: int) -> np.ndarray:
-    """(N, (2·half+1)²) indices of each grid point's window pixels, −1 where a pixel is empty or outside."""
+def _grid_neighbours(grid: np.ndarray, grid_shape: tuple[int, int], half: int,
+                     at: np.ndarray | None = None) -> np.ndarray:
+    """(M, (2·half+1)²) indices of the window pixels of grid points `at` (default all), −1 where a pixel is
+    empty or outside."""
     h, w = grid_shape
     index = np.full((h + 2 * half, w + 2 * half), -1, dtype=np.int64)
     index[grid[:, 0] + half, grid[:, 1] + half] = np.arange(len(grid))
-    rows, cols = grid[:, 0] + half, grid[:, 1] + half
+    centre = grid if at is None else grid[at]
+    rows, cols = centre[:, 0] + half, centre[:, 1] + half
     offsets = range(-half, half + 1)
     return np.stack([index[rows + dr, cols + dc] for dr in offsets for dc in offsets], axis=1)
 
 
-def _neighbours(points: np.ndarray, k: int, grid: np.ndarray | None, grid_shape: tuple[int, int] | None) -> np.ndarray:
-    """(N, K) neighbour indices (the point itself included), −1 for none."""
+def _neighbours(points: np.ndarray, k: int, grid: np.ndarray | None, grid_shape: tuple[int, int] | None,
+                at: np.ndarray | None = None) -> np.ndarray:
+    """(M, K) neighbour indices among all points of the points `at` (default all; itself included), −1 for none."""
     if grid is not None:
         if grid_shape is None:
             raise ValueError("grid given without grid_shape")
         half = max(1, int(np.ceil((np.sqrt(k) - 1.0) / 2.0)))
-        return _grid_neighbours(np.asarray(grid), grid_shape, half)
+        return _grid_neighbours(np.asarray(grid), grid_shape, half, at)
     k = min(k, len(points))
-    _, nb = cKDTree(points).query(points, k=k)
-    return nb.reshape(len(points), k)
+    centres = points if at is None else points[at]
+    _, nb = cKDTree(points).query(centres, k=k)
+    return nb.reshape(len(centres), k)
 
 
-def _local_pca(points: np.ndarray, nb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per point: neighbour count, centroid offset (N, 3), least-variance direction (N, 3), neighbourhood radius."""
+def _local_pca(points: np.ndarray, nb: np.ndarray,
+               at: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per point `at` (default all): neighbour count, centroid offset (M, 3), least-variance direction (M, 3),
+    neighbourhood radius."""
     ok = nb >= 0
-    d = np.where(ok[..., None], points[np.where(ok, nb, 0)] - points[:, None, :], 0.0)
+    centres = points if at is None else points[at]
+    d = np.where(ok[..., None], points[np.where(ok, nb, 0)] - centres[:, None, :], 0.0)
     count = ok.sum(axis=1)
     n = np.maximum(count, 1)[:, None]
     mean = d.sum(axis=1) / n
@@ -55,8 +63,10 @@ def estimate_normals(
     *,
     grid: np.ndarray | None = None,
     grid_shape: tuple[int, int] | None = None,
+    at: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(N, 3) unit PCA normals of a point cloud (mm).
+    """(N, 3) unit PCA normals of a point cloud (mm), or (M, 3) of the points with indices `at` only (their
+    neighbourhoods still taken among all points).
 
     k: neighbourhood size (k nearest points, or the smallest square grid
     window with at least k pixels when `grid` is given). Normals point
@@ -65,10 +75,12 @@ def estimate_normals(
     that direction as their normal.
     """
     p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-    if len(p) == 0:
+    centres = p if at is None else p[at]
+    if len(centres) == 0:
         return np.zeros((0, 3))
-    count, _, normals, _ = _local_pca(p, _neighbours(p, k, grid, grid_shape))
-    towards = np.broadcast_to([0.0, 0.0, 1.0], p.shape) if viewpoint is None else np.asarray(viewpoint, float) - p
+    count, _, normals, _ = _local_pca(p, _neighbours(p, k, grid, grid_shape, at), at)
+    towards = (np.broadcast_to([0.0, 0.0, 1.0], centres.shape) if viewpoint is None
+               else np.asarray(viewpoint, float) - centres)
     normals = np.where(((normals * towards).sum(axis=1) < 0)[:, None], -normals, normals)
     few = count < 3
     if few.any():

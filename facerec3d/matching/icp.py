@@ -167,8 +167,8 @@ class GalleryIndex(NamedTuple):
 
     @classmethod
     def from_template(cls, template: Template) -> "GalleryIndex":
-        if template.method != ICPMatcher.name:
-            raise ValueError(f"not an ICP gallery template: method {template.method!r}")
+        if missing := set(_INDEX_ARRAYS) - set(template.arrays):
+            raise ValueError(f"not an ICP gallery template (method {template.method!r}): no {sorted(missing)}")
         a, s = template.arrays, template.attrs
         return cls(*(a[name] for name in _INDEX_ARRAYS), np.asarray(s["origin"], dtype=np.float64),
                    float(s["voxel_size"]), int(s["nx"]), int(s["ny"]), int(s["nz"]),
@@ -191,14 +191,18 @@ class ProbeData(NamedTuple):
     def build(cls, points: np.ndarray, normals: np.ndarray | None = None, colors: np.ndarray | None = None,
               config: ICPConfig = ICPConfig(), *, grid: np.ndarray | None = None,
               grid_shape: tuple[int, int] | None = None) -> "ProbeData":
-        """Shuffle (seeded) and keep the fine_points needed; normals estimated on all points when needed and absent."""
+        """Shuffle (seeded) and keep the fine_points needed; normals, when needed and absent, estimated at the kept
+        points from their neighbours among all points."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        if normals is None and config.max_normal_angle is not None:
-            normals = estimate_normals(pts, config.normal_neighbours, grid=grid, grid_shape=grid_shape)
         keep = np.random.default_rng(config.seed).permutation(len(pts))
         if config.fine_points:
             keep = keep[: config.fine_points]
-        nrm = np.zeros((0, 3)) if normals is None else np.asarray(normals, dtype=np.float64)[keep]
+        if normals is not None:
+            nrm = np.asarray(normals, dtype=np.float64)[keep]
+        elif config.max_normal_angle is not None:
+            nrm = estimate_normals(pts, config.normal_neighbours, grid=grid, grid_shape=grid_shape, at=keep)
+        else:
+            nrm = np.zeros((0, 3))
         col = np.zeros((0, 3), np.uint8) if colors is None else np.asarray(colors, dtype=np.uint8)[keep]
         return cls(np.ascontiguousarray(pts[keep]), np.ascontiguousarray(nrm), np.ascontiguousarray(col))
 
@@ -286,12 +290,15 @@ class ICPMatcher(Matcher):
 
     def scores(self, probe: FaceScan | Template, templates: Sequence[Template]) -> tuple[np.ndarray, np.ndarray]:
         """(−MSE, correspondence count) against each template; one compiled call per template."""
-        p = self._probe_data(probe)
-        s = np.empty(len(templates))
-        m = np.empty(len(templates), dtype=np.int64)
+        return self.data_scores(self._probe_data(probe), [GalleryIndex.from_template(t) for t in templates])
+
+    def data_scores(self, probe: ProbeData, galleries: Sequence[GalleryIndex]) -> tuple[np.ndarray, np.ndarray]:
+        """(−MSE mm², correspondence count) of probe data (e.g. one region of a face) against gallery indices."""
+        s = np.empty(len(galleries))
+        m = np.empty(len(galleries), dtype=np.int64)
         eye, zero = np.eye(3), np.zeros(3)
-        for i, template in enumerate(templates):
-            out = _icp_loop(p, GalleryIndex.from_template(template), self._params, eye, zero)
+        for i, gallery in enumerate(galleries):
+            out = _icp_loop(probe, gallery, self._params, eye, zero)
             s[i], m[i] = -out[2], out[3]
         return s, m
 

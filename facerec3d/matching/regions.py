@@ -42,7 +42,7 @@ from facerec3d.geometry.normals import estimate_normals
 from facerec3d.matching.base import Matcher, Template
 from facerec3d.matching.expression import expression_mobility
 from facerec3d.matching.fusion import check_fusion, fuse
-from facerec3d.matching.icp import GalleryIndex, ICPConfig, ICPMatcher, ProbeData, _icp_loop, _params
+from facerec3d.matching.icp import GalleryIndex, ICPConfig, ICPMatcher, ProbeData
 from facerec3d.scan import FaceScan
 
 NAMED_REGIONS = ("nose", "eyes-forehead", "rigid")
@@ -131,7 +131,7 @@ class RegionICPMatcher(Matcher):
 
     def __init__(self, config: RegionICPConfig = RegionICPConfig()):
         self.config = config
-        self._params = _params(config.icp)
+        self._icp = ICPMatcher(config.icp)
 
     def enroll(self, scan: FaceScan) -> Template:
         t = GalleryIndex.from_scan(scan, self.config.icp).to_template(scan.meta.subject, scan.meta.scan_id)
@@ -156,12 +156,10 @@ class RegionICPMatcher(Matcher):
         """Each region's −MSE (mm²) against each template: (regions, templates); −inf for a missing region."""
         p = self._probe(probe)
         S = np.full((len(p.regions), len(templates)), -np.inf)
-        eye, zero = np.eye(3), np.zeros(3)
-        for j, t in enumerate(templates):
-            g = GalleryIndex.from_template(dataclasses.replace(t, method=ICPMatcher.name))
-            for k, region in enumerate(p.regions):
-                if region is not None:
-                    S[k, j] = -_icp_loop(region, g, self._params, eye, zero)[2]
+        galleries = [GalleryIndex.from_template(t) for t in templates]
+        for k, region in enumerate(p.regions):
+            if region is not None:
+                S[k] = self._icp.data_scores(region, galleries)[0]
         return S
 
     def scores(self, probe: FaceScan | RegionProbe,

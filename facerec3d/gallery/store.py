@@ -1,0 +1,260 @@
+"""A persistent gallery: one SQLite file holding enrolled templates, the settings they were made with and
+the failures to enrol (ISO/IEC 19795-1 FTE).
+
+    with GalleryStore("g.sqlite", create=True) as store:
+        store.bind(PreprocessConfig(), make_matcher("icp"))
+        store.add(template, source="scan.abs.gz")
+        matcher, templates = store.matcher(), store.templates()
+
+Schema (stdlib sqlite3, WAL journal, foreign keys on):
+  meta(key, value)                       "format", "preprocess" (PreprocessConfig.fingerprint()),
+                                         "method", "options" (JSON), "state" (JSON attrs of a learnt matcher)
+  entries(id, subject, scan_id, source, method, attrs JSON, nbytes, enrolled_at)
+  arrays(entry → entries.id ON DELETE CASCADE, name, dtype, shape JSON, data BLOB)
+  model_arrays(name, dtype, shape JSON, data BLOB)   what a learnt matcher's fit() kept
+  failures(id, source, reason, failed_at)
+Arrays are stored as raw C-order bytes with their dtype string (e.g. "<f4") and shape — never pickled.
+Each enrolment (an entry and its arrays) is one transaction, so a crash or kill mid-enrolment leaves every
+earlier enrolment intact and the file readable (SQLite rolls the unfinished one back on the next open).
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from os import PathLike
+from pathlib import Path
+
+import numpy as np
+
+from facerec3d.errors import FaceRec3DError
+from facerec3d.matching.base import Matcher, Template
+from facerec3d.matching.registry import make_matcher
+from facerec3d.preprocess.pipeline import PreprocessConfig
+
+FORMAT = "facerec3d-gallery-1"
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS entries (
+    id INTEGER PRIMARY KEY AUTOINCREMENT, subject TEXT, scan_id TEXT, source TEXT NOT NULL UNIQUE,
+    method TEXT NOT NULL, attrs TEXT NOT NULL, nbytes INTEGER NOT NULL, enrolled_at REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS arrays (
+    entry INTEGER NOT NULL REFERENCES entries(id) ON DELETE CASCADE, name TEXT NOT NULL,
+    dtype TEXT NOT NULL, shape TEXT NOT NULL, data BLOB NOT NULL, PRIMARY KEY (entry, name));
+CREATE TABLE IF NOT EXISTS model_arrays (name TEXT PRIMARY KEY, dtype TEXT NOT NULL, shape TEXT NOT NULL,
+    data BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS failures (id INTEGER PRIMARY KEY AUTOINCREMENT, source TEXT NOT NULL,
+    reason TEXT NOT NULL, failed_at REAL NOT NULL);
+CREATE INDEX IF NOT EXISTS entries_subject ON entries(subject);
+"""
+
+
+class GalleryError(FaceRec3DError):
+    """A gallery store cannot be used as asked (missing, not a store, or made with other settings)."""
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One enrolled template's row: store id, who, from which file, size (bytes) and time (Unix s)."""
+
+    id: int
+    subject: str | None
+    scan_id: str | None
+    source: str
+    nbytes: int
+    enrolled_at: float
+
+
+def encode_array(a: np.ndarray) -> tuple[str, str, bytes]:
+    """(dtype string, JSON shape, raw C-order bytes) of a numeric or boolean array."""
+    a = np.asarray(a)
+    if a.dtype.hasobject or a.dtype.kind not in "biufc":
+        raise ValueError(f"cannot store arrays of dtype {a.dtype}")
+    return a.dtype.str, json.dumps(list(a.shape)), np.ascontiguousarray(a).tobytes()
+
+
+def decode_array(dtype: str, shape: str, data: bytes) -> np.ndarray:
+    """The writable array of `encode_array`'s output."""
+    return np.frombuffer(bytearray(data), dtype=np.dtype(dtype)).reshape(json.loads(shape))
+
+
+class GalleryStore:
+    """A gallery store file; `create=True` makes a new one when the file does not exist."""
+
+    def __init__(self, path: str | PathLike, create: bool = False):
+        self.path = Path(path)
+        if not self.path.is_file() and not create:
+            raise GalleryError(f"{self.path}: no such gallery (enrol into it first)")
+        try:
+            self._db = sqlite3.connect(self.path, isolation_level=None, timeout=30.0)
+            self._db.execute("PRAGMA foreign_keys = ON")
+            self._db.execute("PRAGMA journal_mode = WAL")
+            fmt = self._meta("format")
+            if fmt is None:
+                self._db.executescript(_SCHEMA)  # idempotent; executescript commits by itself
+                self._db.execute("INSERT OR IGNORE INTO meta VALUES ('format', ?)", (FORMAT,))
+            elif fmt != FORMAT:
+                raise GalleryError(f"{self.path}: gallery format {fmt!r}, this version reads {FORMAT!r}")
+        except sqlite3.DatabaseError as e:
+            raise GalleryError(f"{self.path}: not a gallery store ({e})") from None
+
+    # ------------------------------------------------------------------ plumbing
+    def close(self) -> None:
+        self._db.close()
+
+    def __enter__(self) -> "GalleryStore":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @contextmanager
+    def _transaction(self) -> Iterator[None]:
+        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            yield
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            raise
+        self._db.execute("COMMIT")
+
+    def _meta(self, key: str) -> str | None:
+        try:
+            row = self._db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        except sqlite3.OperationalError as e:  # a new file: no tables yet
+            if "no such table" in str(e):
+                return None
+            raise
+        return None if row is None else row[0]
+
+    # ------------------------------------------------------------------ settings
+    def bind(self, preprocess: PreprocessConfig, matcher: Matcher) -> None:
+        """Record the preprocessing and matcher settings in a new store, or check that they are the stored ones."""
+        if self._meta("method") is None:
+            arrays, attrs = matcher.state()
+            with self._transaction():
+                self._db.executemany("INSERT INTO meta VALUES (?, ?)", [
+                    ("preprocess", preprocess.fingerprint()), ("method", matcher.name),
+                    ("options", json.dumps(matcher.options(), sort_keys=True)),
+                    ("state", json.dumps(attrs, sort_keys=True))])
+                self._db.executemany("INSERT INTO model_arrays VALUES (?, ?, ?, ?)",
+                                     [(name, *encode_array(a)) for name, a in arrays.items()])
+            return
+        self.check_preprocess(preprocess)
+        self.check_matcher(matcher)
+
+    def preprocess_config(self) -> PreprocessConfig:
+        """The preprocessing settings the gallery was enrolled with."""
+        return PreprocessConfig.from_dict(json.loads(self._require("preprocess")))
+
+    def check_preprocess(self, preprocess: PreprocessConfig) -> None:
+        """Refuse scans preprocessed with settings other than the gallery's."""
+        stored = self._require("preprocess")
+        if preprocess.fingerprint() != stored:
+            a, b = json.loads(stored), preprocess.to_dict()
+            diff = sorted(_differences(a, b))
+            raise GalleryError(f"{self.path}: the probe is preprocessed differently from the gallery "
+                               f"(differs in {', '.join(diff)}); use the gallery's settings")
+
+    def check_matcher(self, matcher: Matcher) -> None:
+        """Refuse a matcher whose method or options are not the gallery's."""
+        method, options = self._require("method"), json.loads(self._require("options"))
+        if matcher.name != method or json.loads(json.dumps(matcher.options())) != options:
+            raise GalleryError(f"{self.path}: the gallery was enrolled with method {method!r} and options "
+                               f"{options}, not {matcher.name!r} with {matcher.options()}")
+
+    def matcher(self) -> Matcher:
+        """The matcher the gallery was enrolled with (method, options and what it learnt)."""
+        matcher = make_matcher(self._require("method"), json.loads(self._require("options")))
+        rows = self._db.execute("SELECT name, dtype, shape, data FROM model_arrays").fetchall()
+        arrays = {name: decode_array(*rest) for name, *rest in rows}
+        state = json.loads(self._require("state"))
+        if arrays or state:
+            matcher.set_state(arrays, state)
+        return matcher
+
+    def _require(self, key: str) -> str:
+        value = self._meta(key)
+        if value is None:
+            raise GalleryError(f"{self.path}: empty gallery (nothing enrolled yet)")
+        return value
+
+    # ------------------------------------------------------------------ entries
+    def add(self, template: Template, source: str) -> int:
+        """Store one template (one transaction); returns its id. A source already enrolled is an error."""
+        arrays = [(name, *encode_array(a)) for name, a in template.arrays.items()]
+        try:
+            with self._transaction():
+                cur = self._db.execute(
+                    "INSERT INTO entries (subject, scan_id, source, method, attrs, nbytes, enrolled_at) "
+                    "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                    (template.subject, template.scan_id, source, template.method, json.dumps(template.attrs),
+                     template.nbytes, time.time()))
+                entry = cur.lastrowid
+                self._db.executemany("INSERT INTO arrays VALUES (?, ?, ?, ?, ?)", [(entry, *a) for a in arrays])
+        except sqlite3.IntegrityError:
+            raise GalleryError(f"{source}: already enrolled in {self.path}") from None
+        return int(entry)
+
+    def add_failure(self, source: str, reason: str) -> None:
+        """Record a failure to enrol (the scan could not be read or preprocessed)."""
+        with self._transaction():
+            self._db.execute("INSERT INTO failures (source, reason, failed_at) VALUES (?, ?, ?)",
+                             (source, reason, time.time()))
+
+    def sources(self) -> set[str]:
+        """The sources (file paths) already enrolled."""
+        return {r[0] for r in self._db.execute("SELECT source FROM entries")}
+
+    def entries(self, subject: str | None = None) -> list[Entry]:
+        """Entries in enrolment order (of one subject when given)."""
+        sql = "SELECT id, subject, scan_id, source, nbytes, enrolled_at FROM entries"
+        rows = self._db.execute(sql + (" WHERE subject = ?" if subject is not None else "") + " ORDER BY id",
+                                () if subject is None else (subject,))
+        return [Entry(*r) for r in rows]
+
+    def templates(self, entries: Sequence[Entry] | None = None) -> list[Template]:
+        """The templates of these entries (default all), in the same order."""
+        entries = self.entries() if entries is None else entries
+        out = []
+        for e in entries:
+            method, attrs = self._db.execute("SELECT method, attrs FROM entries WHERE id = ?", (e.id,)).fetchone()
+            rows = self._db.execute("SELECT name, dtype, shape, data FROM arrays WHERE entry = ?", (e.id,))
+            out.append(Template(e.subject, e.scan_id, method, {n: decode_array(*rest) for n, *rest in rows},
+                                json.loads(attrs)))
+        return out
+
+    def remove(self, ident: str) -> int:
+        """Delete the entries of subject `ident`, or else the entry with scan id `ident`; returns how many."""
+        with self._transaction():
+            n = self._db.execute("DELETE FROM entries WHERE subject = ?", (ident,)).rowcount
+            if n == 0:
+                n = self._db.execute("DELETE FROM entries WHERE scan_id = ?", (ident,)).rowcount
+        return n
+
+    def failures(self) -> list[tuple[str, str]]:
+        """(source, reason) of each recorded failure to enrol."""
+        return list(self._db.execute("SELECT source, reason FROM failures ORDER BY id"))
+
+    def stats(self) -> dict:
+        """Counts, sizes and settings of the gallery."""
+        n, subjects, nbytes = self._db.execute(
+            "SELECT COUNT(*), COUNT(DISTINCT subject), COALESCE(SUM(nbytes), 0) FROM entries").fetchone()
+        return {"entries": n, "subjects": subjects, "template_bytes": nbytes,
+                "file_bytes": self.path.stat().st_size, "failures_to_enrol": len(self.failures()),
+                "method": self._meta("method"), "options": json.loads(self._meta("options") or "null")}
+
+
+def _differences(a, b, prefix: str = "") -> Iterator[str]:
+    """Dotted names of the fields where two nested dicts differ."""
+    for key in sorted(set(a) | set(b)):
+        x, y = a.get(key), b.get(key)
+        if isinstance(x, dict) and isinstance(y, dict):
+            yield from _differences(x, y, f"{prefix}{key}.")
+        elif x != y:
+            yield f"{prefix}{key}"

@@ -1,0 +1,36 @@
+"""Synthetic faces made directly in the preprocessed form (no range scanner, no preprocessing), for tests
+and gallery benchmarks: a random ICT-FaceKit identity (coefficients ~ N(0, 1), seeded by the subject
+number), nose tip at the origin, looking along +z, rasterised on the 1 mm grid of §8.5.6 and cropped to
+80 mm around the nose tip, like the output of `Preprocessor` (~14k points). ~60 ms per face.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from facerec3d.datasets.model import load_model
+from facerec3d.geometry.transforms import rotation_from_euler
+from facerec3d.preprocess.resample import ResampleConfig, depth_to_scan, rasterize_depth
+from facerec3d.scan import FaceScan, ScanMeta
+
+CROP_MM = 80.0  # mm: crop radius around the nose tip, as PreprocessConfig.crop_radius_mm
+
+
+def frontal_face(subject: int, pose_deg: float = 0.0, shift_mm: float = 0.0, noise_mm: float = 0.0,
+                 seed: int | None = None) -> FaceScan:
+    """Identity `subject` as a preprocessed face; a probe of it: moved by a random rotation (≤ pose_deg
+    degrees about each axis) and shift (≤ shift_mm mm per axis), with Gaussian depth noise (σ noise_mm mm),
+    drawn from `seed`."""
+    model = load_model()
+    v = model.shape(np.random.default_rng(subject).standard_normal(100))
+    v = v - v[model.nose_tip]
+    rng = np.random.default_rng(seed)
+    if pose_deg or shift_mm:
+        v = v @ rotation_from_euler(*rng.uniform(-pose_deg, pose_deg, 3)).T + rng.uniform(-shift_mm, shift_mm, 3)
+    tris = model.triangles[(model.region[model.triangles] == 0).all(axis=1)]
+    scan = depth_to_scan(rasterize_depth(v, tris), ResampleConfig())
+    scan = scan.subset(np.linalg.norm(scan.points, axis=1) <= CROP_MM)
+    points = scan.points.copy()
+    if noise_mm:
+        points[:, 2] += rng.normal(0.0, noise_mm, len(points))
+    return scan.replace(points=points, meta=ScanMeta(subject=str(subject), scan_id=f"{subject}-{seed}"))

@@ -1,0 +1,96 @@
+"""The sharded matching engine: local processes and a Dask cluster give exactly the single-process results."""
+
+import numpy as np
+import pytest
+
+from facerec3d.gallery.cascade import CascadeConfig
+from facerec3d.gallery.engine import Engine
+from facerec3d.gallery.synthetic import frontal_face
+from facerec3d.matching.base import rank
+from facerec3d.matching.icp import ICPMatcher
+
+N_GALLERY = 7
+
+
+@pytest.fixture(scope="module")
+def faces():
+    gallery = [frontal_face(s) for s in range(N_GALLERY)]
+    probes = [frontal_face(s, pose_deg=3.0, shift_mm=3.0, noise_mm=0.3, seed=10 + s) for s in (1, 4, 6)]
+    return gallery, probes
+
+
+@pytest.fixture(scope="module")
+def reference(faces):
+    """Templates and exhaustive (scores, tiebreak) computed directly by the matcher, one process."""
+    gallery, probes = faces
+    m = ICPMatcher()
+    templates = [m.enroll(f) for f in gallery]
+    return templates, [m.scores(m.prepare(p), templates) for p in probes]
+
+
+def _check(engine, faces, reference):
+    gallery, probes = faces
+    templates, expected = reference
+    m = ICPMatcher()
+    enrolled = engine.enroll(m, gallery)
+    for a, b in zip(enrolled, templates):
+        assert a.arrays.keys() == b.arrays.keys()
+        assert all(np.array_equal(a.arrays[k], b.arrays[k]) for k in a.arrays)
+    sharded = engine.load(m, enrolled)
+    prepared = engine.prepare(m, probes, CascadeConfig())
+    for (s, t), (es, et) in zip(sharded.scores(prepared), expected):
+        np.testing.assert_array_equal(s, es)
+        np.testing.assert_array_equal(t, et)
+    cascade = sharded.cascade(prepared, CascadeConfig(shortlist=3))
+    for k, (face, (s, t, shortlist)) in enumerate(zip(probes, cascade)):
+        assert len(shortlist) == 3
+        np.testing.assert_array_equal(s[shortlist], expected[k][0][shortlist])  # full ICP on the shortlist
+        assert np.all(np.isneginf(np.delete(s, shortlist)))
+        assert int(face.meta.subject) in shortlist  # the true identity passes the screen ...
+        assert rank(s, t)[0] == int(face.meta.subject)  # ... and wins
+        assert sharded.identify(face, k=2, cascade=CascadeConfig(shortlist=3))[0] == (int(face.meta.subject),
+                                                                                       float(s.max()))
+    sharded.release()
+    return cascade
+
+
+def test_one_and_two_processes_give_the_same_results(faces, reference):
+    with Engine.create(1) as one:
+        a = _check(one, faces, reference)
+    with Engine.create(2) as two:
+        assert two.workers == 2
+        b = _check(two, faces, reference)
+    for (s1, t1, l1), (s2, t2, l2) in zip(a, b):
+        assert np.array_equal(s1, s2) and np.array_equal(t1, t2) and np.array_equal(l1, l2)
+
+
+def test_dask_local_cluster_gives_the_same_results(faces, reference):
+    import distributed  # in the test extra
+
+    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None)
+    with cluster, distributed.Client(cluster) as client:
+        with Engine.create(scheduler=client) as engine:
+            assert engine.workers == 2
+            _check(engine, faces, reference)
+        with Engine.create(scheduler=cluster.scheduler_address) as engine:  # by address, as --scheduler
+            templates = engine.enroll(ICPMatcher(), faces[0][:3])
+            assert [t.subject for t in templates] == ["0", "1", "2"]
+
+
+def test_evaluation_is_identical_on_one_and_two_processes(tmp_path):
+    from facerec3d.datasets.synthetic import DatasetConfig, ScannerConfig, write_dataset
+    from facerec3d.evaluation.run import evaluate
+
+    data = tmp_path / "data"
+    write_dataset(data, DatasetConfig(subjects=3, scans=2, seed=3, scanner=ScannerConfig(rows=240, cols=320,
+                                                                                      focal_px=725.0)), "abs")
+    runs = {jobs: evaluate(data, "icp", tmp_path / f"run{jobs}", jobs=jobs, cache=tmp_path / "cache", progress=False)
+            for jobs in (1, 2)}
+    assert runs[1]["workers"] == 1 and runs[2]["workers"] == 2
+    assert (tmp_path / "run1" / "scores.txt").read_text() == (tmp_path / "run2" / "scores.txt").read_text()
+    assert runs[1]["rank1"] == runs[2]["rank1"] == 1.0
+    m = evaluate(data, "icp", tmp_path / "cascade", jobs=2, cache=tmp_path / "cache", progress=False,
+                 cascade=CascadeConfig(shortlist=2))
+    assert m["cascade"]["shortlist"] == 2 and m["cascade"]["recall"] == 1.0 and m["rank1"] == 1.0
+    scores = [line.split() for line in (tmp_path / "cascade" / "scores.txt").read_text().splitlines()]
+    assert sum(s[3] == "-inf" for s in scores) == len(scores) // 3  # one of 3 faces per probe is off the shortlist

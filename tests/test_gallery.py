@@ -1,0 +1,165 @@
+"""The gallery store: exact array round trip, settings checks, transactions that survive a kill, and the CLI."""
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from facerec3d.cli import main
+from facerec3d.gallery.store import GalleryError, GalleryStore
+from facerec3d.matching.base import Template
+from facerec3d.matching.icp import ICPConfig, ICPMatcher
+from facerec3d.preprocess.pipeline import PreprocessConfig
+
+
+def big_template(i: int) -> Template:
+    """Entry i's deterministic content: ~4 MB of arrays of several dtypes."""
+    rng = np.random.default_rng(i)
+    arrays = {"points": rng.normal(size=(300_000, 3)).astype(np.float32), "flags": rng.random(1000) < 0.5,
+              "index": rng.integers(0, 60000, 5000).astype(np.uint16), "empty": np.zeros((0, 3), np.uint8),
+              "scalar": np.array(float(i))}
+    return Template(f"s{i}", f"scan{i}", "icp", arrays, {"i": i, "origin": [1.5, -2.0, 0.25]})
+
+
+def assert_same(a: Template, b: Template) -> None:
+    assert (a.subject, a.scan_id, a.method, a.attrs) == (b.subject, b.scan_id, b.method, b.attrs)
+    assert a.arrays.keys() == b.arrays.keys()
+    for k in a.arrays:
+        assert a.arrays[k].dtype == b.arrays[k].dtype and a.arrays[k].shape == b.arrays[k].shape
+        assert np.array_equal(a.arrays[k], b.arrays[k])
+
+
+def test_round_trip_settings_and_removal(tmp_path):
+    path = tmp_path / "g.sqlite"
+    with pytest.raises(GalleryError, match="no such gallery"):
+        GalleryStore(path)
+    matcher = ICPMatcher(ICPConfig(variant="point-to-plane", fine_points=800))
+    with GalleryStore(path, create=True) as store:
+        store.bind(PreprocessConfig(), matcher)
+        for i in range(3):
+            store.add(big_template(i), f"/data/{i}.abs")
+        store.add_failure("/data/bad.abs", "no face found")
+        with pytest.raises(GalleryError, match="already enrolled"):
+            store.add(big_template(0), "/data/0.abs")
+    with GalleryStore(path) as store:  # reopened: everything as written
+        loaded = store.templates()
+        for i, t in enumerate(loaded):
+            assert_same(t, big_template(i))
+            assert t.arrays["points"].flags.writeable
+        assert store.matcher().options() == matcher.options() and store.matcher().name == "icp"
+        assert store.failures() == [("/data/bad.abs", "no face found")]
+        st = store.stats()
+        assert (st["entries"], st["subjects"], st["failures_to_enrol"]) == (3, 3, 1)
+        assert st["template_bytes"] == 3 * big_template(0).nbytes
+        store.bind(PreprocessConfig(), matcher)  # same settings: accepted
+        with pytest.raises(GalleryError, match=r"preprocessed differently.*crop_radius_mm"):
+            store.check_preprocess(PreprocessConfig(crop_radius_mm=70.0))
+        with pytest.raises(GalleryError, match="enrolled with method 'icp'"):
+            store.bind(PreprocessConfig(), ICPMatcher())
+        assert store.remove("s1") == 1 and store.remove("scan2") == 1 and store.remove("nobody") == 0
+        assert [e.subject for e in store.entries()] == ["s0"]
+        assert sqlite3.connect(path).execute("SELECT COUNT(*) FROM arrays").fetchone()[0] == 5  # cascade delete
+    (tmp_path / "junk.sqlite").write_bytes(b"not a database at all" * 100)
+    with pytest.raises(GalleryError, match="not a gallery store"):
+        GalleryStore(tmp_path / "junk.sqlite")
+
+
+WRITER = """
+import sys
+sys.path.insert(0, {tests!r})
+from test_gallery import big_template
+from facerec3d.gallery.store import GalleryStore
+store = GalleryStore({path!r}, create=True)
+i = 0
+while True:  # enrol until killed
+    store.add(big_template(i), f"/data/{{i}}.abs")
+    i += 1
+"""
+
+
+def test_kill_during_enrolment_leaves_earlier_entries_intact(tmp_path):
+    path = tmp_path / "g.sqlite"
+    code = WRITER.format(tests=os.path.dirname(__file__), path=str(path))
+    proc = subprocess.Popen([sys.executable, "-c", code])
+    try:
+        deadline = time.monotonic() + 120
+        n = 0
+        while n < 2:  # wait until two enrolments are committed (no timing guess), then kill mid-way
+            assert proc.poll() is None, "the writer died by itself"
+            assert time.monotonic() < deadline, "the writer made no progress"
+            time.sleep(0.05)
+            if path.is_file():
+                db = sqlite3.connect(path, timeout=30)
+                try:
+                    n = db.execute("SELECT COUNT(*) FROM entries").fetchone()[0]
+                except sqlite3.OperationalError:  # the schema is not there yet
+                    n = 0
+                finally:
+                    db.close()
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    with GalleryStore(path) as store:
+        assert sqlite3.connect(path).execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+        entries = store.entries()
+        assert len(entries) >= n >= 2
+        for i, (entry, template) in enumerate(zip(entries, store.templates(entries))):
+            assert entry.source == f"/data/{i}.abs"
+            assert_same(template, big_template(i))
+        store.add(big_template(len(entries)), "/data/next.abs")  # still writable
+        assert len(store.entries()) == len(entries) + 1
+
+
+def test_cli_enroll_identify_verify_and_gallery(tmp_path):
+    run = CliRunner()
+    data = tmp_path / "d"
+    r = run.invoke(main, ["synth", str(data), "--subjects", "3", "--scans", "2", "--rows", "240", "--cols", "320",
+                          "--seed", "5", "--expressions", "smile", "--expression-strength", "0.2", "0.2"])
+    assert r.exit_code == 0, r.output
+    rows = [line.split(",") for line in (data / "manifest.csv").read_text().splitlines()[1:]]
+    gallery_scans = [data / p for p, s, *_ in rows[::2]]
+    probe, probe_subject = data / rows[1][0], rows[1][1]
+    bad = tmp_path / "broken.abs"
+    bad.write_text("not a range image\n")
+    store, cache = str(tmp_path / "g.sqlite"), str(tmp_path / "cache")
+    r = run.invoke(main, ["enroll", *map(str, gallery_scans), str(bad), "--gallery", store, "--jobs", "2",
+                          "--cache", cache])
+    assert r.exit_code == 0, r.output
+    assert "3 enrolled, 0 already enrolled, 1 failed to enrol" in r.output and "broken.abs" in r.output
+    r = run.invoke(main, ["enroll", str(gallery_scans[0]), "--gallery", store, "--jobs", "1", "--cache", cache])
+    assert "0 enrolled, 1 already enrolled" in r.output
+    for cascade in ([], ["--cascade"]):
+        r = run.invoke(main, ["identify", str(probe), "--gallery", store, "-k", "3", "--jobs", "2", "--cache", cache,
+                              *cascade])
+        assert r.exit_code == 0, r.output
+        first = r.output.splitlines()[1].split()
+        assert first[:2] == ["1", probe_subject] and len(r.output.splitlines()) == 4
+    r = run.invoke(main, ["verify", str(probe), "--gallery", store, "--claim", probe_subject, "--cache", cache])
+    assert r.exit_code == 0 and r.output.startswith("accept"), r.output
+    other = next(s for _, s, *_ in rows if s != probe_subject)
+    r = run.invoke(main, ["verify", str(probe), "--gallery", store, "--claim", other, "--cache", cache])
+    assert r.exit_code == 1 and r.output.startswith("reject"), r.output
+    cfg = tmp_path / "other.json"
+    cfg.write_text(json.dumps({"crop_radius_mm": 70}))
+    r = run.invoke(main, ["identify", str(probe), "--gallery", store, "--config", str(cfg), "--cache", cache])
+    assert r.exit_code == 2 and "preprocessed differently" in r.output and "Traceback" not in r.output
+    r = run.invoke(main, ["identify", str(probe), "--gallery", str(tmp_path / "none.sqlite")])
+    assert r.exit_code == 2 and "no such gallery" in r.output
+    r = run.invoke(main, ["gallery", store, "stats"])
+    assert r.exit_code == 0 and "3 entries of 3 subjects" in r.output and "1 failures to enrol" in r.output
+    r = run.invoke(main, ["gallery", store, "remove", other])
+    assert r.exit_code == 0 and "removed 1 entry" in r.output
+    r = run.invoke(main, ["gallery", store, "list"])
+    listed = r.output.splitlines()
+    assert len(listed) == 3 and listed[-1].startswith("failed") and other not in {l.split()[1] for l in listed[:2]}
+    r = run.invoke(main, ["gallery", store, "remove", other])
+    assert r.exit_code == 2 and "no subject or scan" in r.output
