@@ -397,22 +397,37 @@ def compare(runs, out):
 @main.command()
 @click.option("--subjects", default=30, show_default=True)
 @click.option("--scans", default=4, show_default=True, help="Scans per subject: neutral gallery, neutral, expression, ±25° yaw.")
+@click.option("--methods", default="icp,region-icp,lda", show_default=True,
+              help="Comma-separated methods to evaluate and compare (learnt ones get a disjoint training set).")
 @click.option("--out", "out", default="demo-out", show_default=True, type=click.Path(file_okay=False))
 @click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores")
 @click.option("--seed", default=0, show_default=True)
 @friendly
-def demo(subjects, scans, out, jobs, seed):
-    """The main job: synthesise a FRGC-style dataset, evaluate ICP on it, print the metrics and the report's path."""
+def demo(subjects, scans, methods, out, jobs, seed):
+    """The main job: synthesise a FRGC-style dataset (and a disjoint training set for learnt methods), evaluate
+    each method on it, print the metrics and write one comparison report."""
     from facerec3d.datasets.synthetic import DatasetConfig, write_dataset
+    from facerec3d.evaluation.compare import compare_runs
     from facerec3d.evaluation.run import evaluate as run
+    from facerec3d.matching.registry import make_matcher
 
     out = Path(out)
-    data = out / "data"
-    if not (data / "manifest.csv").is_file():
-        write_dataset(data, DatasetConfig(subjects=subjects, scans=scans, seed=seed), "abs", progress=True)
-    m = run(data, "icp", out / "icp", None, jobs, out / "cache")
-    _print_metrics(m)
-    click.echo(f"report: {out / 'icp' / 'report.html'}")
+    names = [m.strip() for m in methods.split(",") if m.strip()]
+    learnt = {name for name in names if make_matcher(name).needs_training}
+    sets = {"data": DatasetConfig(subjects=subjects, scans=scans, seed=seed)}
+    if learnt:
+        sets["train"] = DatasetConfig(subjects=subjects, scans=scans, seed=seed + 1, first_subject=1000)
+    for name, cfg in sets.items():
+        if not (out / name / "manifest.csv").is_file():
+            click.echo(f"synthesising {name}: {cfg.subjects} subjects x {cfg.scans} scans")
+            write_dataset(out / name, cfg, "abs", progress=True)
+    for name in names:
+        click.echo(f"\n== {name}" + (f" (trained on {out / 'train'})" if name in learnt else ""))
+        m = run(out / "data", name, out / name, None, jobs, out / "cache",
+                train=out / "train" if name in learnt else None)
+        _print_metrics(m)
+    compare_runs([out / name for name in names], out / "compare")
+    click.echo(f"\nreports: {out / 'compare' / 'compare.html'} (all methods), {out}/<method>/report.html")
 
 
 if __name__ == "__main__":

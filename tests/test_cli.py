@@ -25,3 +25,21 @@ def test_bad_input_is_one_line_and_exit_code_2(tmp_path):
     assert "bad.bnt" in r.output and "Traceback" not in r.output
     r = CliRunner().invoke(main, ["convert", str(bad), str(tmp_path / "x.ply")])
     assert r.exit_code == 2 and "truncated header" in r.output
+
+
+def test_demo_evaluates_each_method_and_compares_them(tmp_path):
+    import json
+
+    out = tmp_path / "demo"
+    r = CliRunner().invoke(main, ["demo", "--subjects", "4", "--scans", "2", "--methods", "icp,lda", "--out", str(out),
+                                  "--jobs", "1"])
+    assert r.exit_code == 0, r.output
+    icp, lda = (json.loads((out / m / "metrics.json").read_text()) for m in ("icp", "lda"))
+    assert icp["method"] == "icp" and "train" not in icp
+    assert lda["method"] == "lda" and lda["n_train_subjects"] == 4 and (out / "lda" / "model.npz").is_file()
+    train = {line.split(",")[1] for line in (out / "train" / "manifest.csv").read_text().splitlines()[1:]}
+    test = {line.split(",")[1] for line in (out / "data" / "manifest.csv").read_text().splitlines()[1:]}
+    assert train and test and not train & test  # disjoint subjects
+    assert icp["subsets"]["neutral"]["rank1"] == 1.0
+    assert "icp (icp)" in (out / "compare" / "compare.md").read_text()
+    assert "lda (lda)" in (out / "compare" / "compare.md").read_text()

@@ -92,9 +92,8 @@ def _fit_basis(config: ModelFitConfig) -> _FitBasis:
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Unit vertex normals of a triangle mesh (area-weighted face normals)."""
     fn = np.cross(vertices[triangles[:, 1]] - vertices[triangles[:, 0]], vertices[triangles[:, 2]] - vertices[triangles[:, 0]])
-    vn = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(vn, triangles[:, k], fn)
+    corners, weights = triangles.ravel(), np.repeat(fn, 3, axis=0)  # each face normal to its three vertices
+    vn = np.stack([np.bincount(corners, weights[:, d], minlength=len(vertices)) for d in range(3)], axis=1)
     return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
 
 
