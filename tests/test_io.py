@@ -342,3 +342,18 @@ def test_unknown_missing_and_unwritable(tmp_path, cap):
     with pytest.raises(ValueError, match="needs a scan with a grid"):
         save_scan(FaceScan(cap.points), tmp_path / "x.abs")
     assert set(SUPPORTED_SUFFIXES) >= {".abs", ".abs.gz", ".bnt", ".ply", ".obj", ".off", ".stl", ".npz"}
+
+
+@given(st.lists(st.floats(-1e6, 1e6, allow_nan=False), max_size=50), st.sampled_from(["%.6f", "%.3f", "%d", "%.9f"]),
+       st.sampled_from([" ", "\n", "  \t"]))
+def test_fast_abs_number_parser_matches_numpy(values, fmt, sep):
+    from facerec3d.io.abs import _parse_decimals
+
+    text = sep.join(fmt % v for v in values).encode()
+    out = np.empty(len(values) + 1)
+    count = _parse_decimals(np.frombuffer(text, dtype=np.uint8), out)
+    expected = np.array(text.split(), dtype=np.float64)
+    if count >= 0:  # exact where it reads at all (else the reader falls back to NumPy)
+        np.testing.assert_array_equal(out[:count], expected)
+    else:
+        assert any(len(t.strip(b"+-").replace(b".", b"")) > 15 for t in text.split())

@@ -15,6 +15,7 @@ import zlib
 from pathlib import Path
 
 import numpy as np
+from numba import njit
 
 from facerec3d.errors import ScanFormatError
 from facerec3d.io.common import check_grid_size, grid_scan, open_binary, range_image
@@ -37,6 +38,45 @@ def _parse_header(path: str | Path, lines: list[bytes]) -> tuple[int, int]:
         raise ScanFormatError(path, "bad header (need 'R rows', 'C columns', 'pixels (flag X Y Z):')") from None
 
 
+_POW10 = 10.0 ** np.arange(16)
+
+
+@njit(cache=True)
+def _parse_decimals(buf, out):  # pragma: no cover - compiled
+    """Whitespace-separated plain decimals (`-12.345678`, at most 15 digits) from ASCII bytes into `out`.
+
+    Returns the number of values (stopping one past the size of `out`), or −1 at a token it cannot read
+    exactly (an exponent, more digits, anything else): the caller then parses the text with NumPy. Each
+    value is mantissa / 10^k of exactly representable doubles, so it is the correctly rounded one, as strtod's.
+    """
+    n, i, size = 0, 0, len(buf)
+    while True:
+        while i < size and (buf[i] == 32 or 9 <= buf[i] <= 13):
+            i += 1
+        if i >= size or n >= len(out):
+            return n
+        negative = buf[i] == 45
+        if buf[i] == 45 or buf[i] == 43:
+            i += 1
+        mantissa, digits, decimals, dot = 0, 0, 0, False
+        while i < size:
+            c = buf[i]
+            if 48 <= c <= 57:
+                mantissa = mantissa * 10 + (c - 48)
+                digits += 1
+                decimals += dot
+            elif c == 46 and not dot:
+                dot = True
+            else:
+                break
+            i += 1
+        if digits == 0 or digits > 15 or (i < size and not (buf[i] == 32 or 9 <= buf[i] <= 13)):
+            return -1
+        value = mantissa / _POW10[decimals]
+        out[n] = -value if negative else value
+        n += 1
+
+
 def read_abs(path: str | Path) -> FaceScan:
     """A FRGC `.abs` / `.abs.gz` range image: points in mm, grid (row, column) of each valid pixel."""
     with open_binary(path) as raw:
@@ -55,10 +95,15 @@ def read_abs(path: str | Path) -> FaceScan:
             raise ScanFormatError(path, f"corrupt or truncated gzip data ({e})") from None
     if len(body) > limit:
         raise ScanFormatError(path, f"far more data than {rows}×{cols} pixels need")
-    try:
-        values = np.array(body.split(), dtype=np.float64)
-    except ValueError:
-        raise ScanFormatError(path, "non-numeric value in the pixel data") from None
+    values = np.empty(4 * n + 1)
+    count = _parse_decimals(np.frombuffer(body, dtype=np.uint8), values)
+    if count >= 0:
+        values = values[:count]
+    else:  # a token the fast parser does not read exactly (exponent, > 15 digits, or not a number)
+        try:
+            values = np.array(body.split(), dtype=np.float64)
+        except ValueError:
+            raise ScanFormatError(path, "non-numeric value in the pixel data") from None
     if len(values) != 4 * n:
         raise ScanFormatError(path, f"expected {4 * n} values for {rows}×{cols} pixels, found {len(values)}")
     flags = values[:n].reshape(rows, cols)
