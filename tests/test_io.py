@@ -344,6 +344,7 @@ def test_unknown_missing_and_unwritable(tmp_path, cap):
     assert set(SUPPORTED_SUFFIXES) >= {".abs", ".abs.gz", ".bnt", ".ply", ".obj", ".off", ".stl", ".npz"}
 
 
+@settings(deadline=None)  # the first call loads the compiled parser
 @given(st.lists(st.floats(-1e6, 1e6, allow_nan=False), max_size=50), st.sampled_from(["%.6f", "%.3f", "%d", "%.9f"]),
        st.sampled_from([" ", "\n", "  \t"]))
 def test_fast_abs_number_parser_matches_numpy(values, fmt, sep):
