@@ -21,11 +21,11 @@ What it does, exactly:
   seconds of all processes are compared too: 2 × CPU(1 process) / CPU(2 processes) is the speed-up an
   idle 2-core machine would give if the two processes kept both cores busy.
 * The FRGC v2 projection (466 gallery × 3,541 probes, one full comparison each, as in §8.4) adds up, in
-  core-seconds: preprocessing of all 4,007 scans at `--preprocess-s` per scan (default: measured in this
-  run on synthetic 480×640 range scans, FRGC's size), enrolment of 466 at the measured cost, probe preparation at the measured cost, and
+  core-seconds: reading and preprocessing all 4,007 scans at `--preprocess-s` per scan (default: measured
+  in this run on synthetic 480×640 .abs.gz range scans, FRGC's size and format), enrolment of 466 at the measured cost, probe preparation at the measured cost, and
   matching at the measured 1-process time per probe against 466; then divides by 2 cores assuming the
-  measured 1 → 2 process speed-up for matching and ideal scaling (2×) for the rest. Excluded: reading
-  the files beyond what the per-scan preprocessing cost includes, metrics and report writing (seconds).
+  measured 1 → 2 process speed-up for matching and ideal scaling (2×) for the rest. Excluded: metrics
+  and report writing (seconds).
 """
 
 from __future__ import annotations
@@ -85,21 +85,28 @@ def _cpu_seconds(engine: Engine) -> float:
 
 
 def preprocessing_cost(n: int) -> float:
-    """Core-seconds to preprocess one synthetic 480×640 range scan (mean of n, one BLAS thread, warmed up)."""
+    """Core-seconds to read (.abs.gz) and preprocess one synthetic 480×640 range scan (mean of n, one BLAS
+    thread, warmed up)."""
+    import tempfile
+    from pathlib import Path
+
     from threadpoolctl import threadpool_limits
 
     from facerec3d.datasets.synthetic import DatasetConfig, FaceScanner, plan_dataset
+    from facerec3d.io import load_scan, save_scan
     from facerec3d.preprocess import Preprocessor
 
     specs = plan_dataset(DatasetConfig(subjects=n, scans=5, seed=7))[2::5][:n]  # each subject's expression scan
     scanner, preprocess = FaceScanner(seed=7), Preprocessor()
-    scans = [scanner.scan(spec).scan for spec in specs]
-    with threadpool_limits(1):
-        preprocess(scans[0])
+    with tempfile.TemporaryDirectory() as tmp, threadpool_limits(1):
+        files = [Path(tmp) / f"{i:02d}.abs.gz" for i in range(len(specs))]
+        for spec, f in zip(specs, files):
+            save_scan(scanner.scan(spec).scan, f)
+        preprocess(load_scan(files[0]))
         t0 = time.process_time()
-        for scan in scans:
-            preprocess(scan)
-        return (time.process_time() - t0) / len(scans)
+        for f in files:
+            preprocess(load_scan(f))
+        return (time.process_time() - t0) / len(files)
 
 
 def main() -> None:
@@ -123,7 +130,7 @@ def main() -> None:
 
     if args.preprocess_s is None:
         args.preprocess_s = preprocessing_cost(args.preprocess_scans)
-        print(f"preprocessing: {args.preprocess_s * 1e3:.0f} ms per 480×640 range scan (one core, mean of "
+        print(f"reading + preprocessing: {args.preprocess_s * 1e3:.0f} ms per 480×640 .abs.gz scan (one core, mean of "
               f"{args.preprocess_scans} synthetic scans with expressions and pose)")
 
     with Engine.create(2) as engine:
