@@ -84,7 +84,7 @@ def main() -> None:
     sets = datasets(Path(args.data), args.subjects, args.scans)
     test, strong, train = sets.values()
     out = Path(args.out)
-    rows = []
+    rows, runs = [], {test: [], strong: []}
     for spec in args.methods.split(","):
         method, _, config = spec.partition("=")
         options = read_settings(config) if config else None
@@ -96,12 +96,14 @@ def main() -> None:
                          options=options, train=train if learnt else None)
             s, t = m["subsets"], m["timings"]
             run = out / f"{label}-{data.name}"
+            runs[data].append(run)
             us = comparison_cost(method, options, run / "model.npz", data, args.cache)
             rows.append((label, data.name, s["neutral"]["rank1"], s["non-neutral"]["rank1"], m["eer"], us,
                          t["prepare_ms"], t["enrol_ms"], time.perf_counter() - t0))
-            print(f"{label} on {data.name}: done in {rows[-1][-1]:.0f} s", flush=True)
-    for data in (test, strong):
-        compare_runs(sorted(out.glob(f"*-{data.name}")), out / f"compare-{data.name}")
+            print(f"{label} on {data.name}: rank-1 neutral {rows[-1][2]:.2%}, non-neutral {rows[-1][3]:.2%}, "
+                  f"{us:.1f} us per comparison; done in {rows[-1][-1]:.0f} s", flush=True)
+    for data, dirs in runs.items():
+        compare_runs(dirs, out / f"compare-{data.name}")
     icp_us = {r[1]: r[5] for r in rows if r[0] == "icp"}
     print("\nrank-1 of neutral / non-neutral probes; EER over all; us/cmp: one probe-gallery comparison of the "
           "matcher alone (one core); vs ICP: how many times faster than ICP's; prepare: per probe (features, "

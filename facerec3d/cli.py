@@ -130,7 +130,7 @@ LANDMARK_COLUMNS = ("nose_tip", "nose_bridge", "left_eye_inner", "right_eye_inne
 @click.option("-o", "--out", "outdir", required=True, type=click.Path(file_okay=False))
 @click.option("--config", "config_file", type=click.Path(dir_okay=False), help="TOML or JSON preprocessing settings.")
 @click.option("--format", "fmt", type=click.Choice(["npz", "ply"]), default="npz", show_default=True)
-@click.option("--jobs", default=1, show_default=True, help="Processes to use.")
+@click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", help="Processes to use.")
 @friendly
 def preprocess(inputs, outdir, config_file, fmt, jobs):
     """Preprocess scans INPUTS into normalised faces in OUT, with OUT/landmarks.csv (chapter §8.5)."""
@@ -172,17 +172,20 @@ def _engine_options(fn):
                         help="Processes to use (the gallery is split into one shard per process).")(fn)
 
 
-def _cascade_options(fn):
+def _cascade_options(fn, screens: bool = False):
     fn = click.option("--shortlist", default=20, show_default=True,
-                      help="With --cascade: faces passed from the depth screen to full ICP.")(fn)
+                      help="With --cascade: faces passed from the screen to full ICP.")(fn)
+    if screens:
+        fn = click.option("--screen", type=click.Choice(["depth", "keypoints"]), default="depth", show_default=True,
+                          help="With --cascade: the first stage (depth descriptor, or keypoint matching §8.10.2).")(fn)
     return click.option("--cascade", is_flag=True, help="ICP only: screen the gallery by a depth descriptor and run "
                         "full ICP on the shortlist only (faces off it score -inf).")(fn)
 
 
-def _cascade_config(cascade: bool, shortlist: int):
+def _cascade_config(cascade: bool, shortlist: int, screen: str = "depth"):
     from facerec3d.gallery.cascade import CascadeConfig
 
-    return CascadeConfig(shortlist=shortlist) if cascade else None
+    return CascadeConfig(shortlist=shortlist, screen=screen) if cascade else None
 
 
 def _print_metrics(m: dict) -> None:
@@ -217,11 +220,11 @@ def _print_metrics(m: dict) -> None:
               help="Default: from the dataset (Bosphorus folder, manifest roles, else FRGC).")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False), help="TOML or JSON preprocessing settings.")
 @click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
-@_cascade_options
+@functools.partial(_cascade_options, screens=True)
 @_engine_options
 @friendly
-def evaluate(data, method, method_config, train, model, out, protocol, config_file, cache, cascade, shortlist, jobs,
-             scheduler):
+def evaluate(data, method, method_config, train, model, out, protocol, config_file, cache, cascade, shortlist, screen,
+             jobs, scheduler):
     """Evaluate a method on DATA (FRGC or Bosphorus folder, or manifest CSV): metrics, scores, plots, report."""
     from facerec3d.config import read_settings
     from facerec3d.evaluation.run import DEFAULT_CACHE, evaluate as run
@@ -230,7 +233,7 @@ def evaluate(data, method, method_config, train, model, out, protocol, config_fi
     config = PreprocessConfig.load(config_file) if config_file else PreprocessConfig()
     options = read_settings(method_config) if method_config else None
     m = run(data, method, out, protocol, jobs, cache or DEFAULT_CACHE, config, options=options, train=train,
-            model=model, scheduler=scheduler, cascade=_cascade_config(cascade, shortlist))
+            model=model, scheduler=scheduler, cascade=_cascade_config(cascade, shortlist, screen))
     _print_metrics(m)
     click.echo(f"report: {Path(out) / 'report.html'}")
 

@@ -94,3 +94,20 @@ def test_evaluation_is_identical_on_one_and_two_processes(tmp_path):
     assert m["cascade"]["shortlist"] == 2 and m["cascade"]["recall"] == 1.0 and m["rank1"] == 1.0
     scores = [line.split() for line in (tmp_path / "cascade" / "scores.txt").read_text().splitlines()]
     assert sum(s[3] == "-inf" for s in scores) == len(scores) // 3  # one of 3 faces per probe is off the shortlist
+
+
+def test_keypoint_screen_shortlists_the_true_subject_identically_on_one_and_two_processes(tmp_path):
+    from facerec3d.datasets.synthetic import DatasetConfig, ScannerConfig, write_dataset
+    from facerec3d.evaluation.run import evaluate
+
+    data = tmp_path / "data"
+    write_dataset(data, DatasetConfig(subjects=4, scans=2, seed=4, scanner=ScannerConfig(rows=240, cols=320,
+                                                                                      focal_px=725.0)), "abs")
+    cascade = CascadeConfig(shortlist=2, screen="keypoints")
+    runs = {jobs: evaluate(data, "icp", tmp_path / f"kp{jobs}", jobs=jobs, cache=tmp_path / "cache", progress=False,
+                           cascade=cascade) for jobs in (1, 2)}
+    assert runs[1]["cascade"]["screen"] == "keypoints" and runs[1]["cascade"]["recall"] == 1.0
+    assert runs[1]["rank1"] == 1.0
+    assert (tmp_path / "kp1" / "scores.txt").read_text() == (tmp_path / "kp2" / "scores.txt").read_text()
+    scores = [line.split() for line in (tmp_path / "kp1" / "scores.txt").read_text().splitlines()]
+    assert sum(s[3] == "-inf" for s in scores) == len(scores) // 2  # two of four faces per probe are screened out

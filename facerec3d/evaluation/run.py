@@ -27,6 +27,7 @@ from facerec3d.errors import FaceRec3DError
 from facerec3d.gallery.cascade import CascadeConfig, check_cascadable
 from facerec3d.gallery.engine import Engine
 from facerec3d.matching.base import Matcher
+from facerec3d.matching.keypoints import KeypointMatcher
 from facerec3d.matching.registry import load_matcher, make_matcher
 from facerec3d.preprocess.batch import preprocess_files
 from facerec3d.preprocess.pipeline import PreprocessConfig
@@ -73,7 +74,8 @@ def evaluate(data: str | Path, method: str = "icp", out: str | Path = "run", pro
     returns metrics.json's content. Learnt methods are fitted on the dataset `train` (and the model saved
     as out/model.npz) or loaded from `model`. Enrolment and matching run on a `gallery.engine.Engine`:
     `jobs` processes, or the workers of a Dask `scheduler` (address or Client). With `cascade` (ICP only)
-    identification goes through the cascade (gallery.cascade): faces off the shortlist score −inf, and
+    identification goes through the cascade (gallery.cascade; its screen the depth descriptor or the keypoint
+    matcher, whose gallery is then enrolled too): faces off the shortlist score −inf, and
     metrics.json's "cascade" gives its settings and recall (share of probes of enrolled subjects whose
     subject is on the shortlist)."""
     matcher, training = trained_matcher(method, options, train, model, jobs, cache, config, progress)
@@ -108,6 +110,9 @@ def evaluate(data: str | Path, method: str = "icp", out: str | Path = "run", pro
         workers = engine.workers
         t0 = time.perf_counter()
         gallery = engine.enroll(matcher, [faces[i] for i in enrolled])
+        keypoints = KeypointMatcher() if cascade is not None and cascade.screen == "keypoints" else None
+        if keypoints is not None:  # the screen's own gallery, sharded alike
+            screen_gallery = engine.load(keypoints, engine.enroll(keypoints, [faces[i] for i in enrolled]))
         timings["enrol_s"] = time.perf_counter() - t0
         timings["enrol_ms"] = 1000 * timings["enrol_s"] / max(len(gallery), 1)
 
@@ -118,9 +123,15 @@ def evaluate(data: str | Path, method: str = "icp", out: str | Path = "run", pro
         with tqdm(total=len(probes), desc="matching", unit="probe", disable=not progress) as bar:
             for b in range(0, len(probes), batch):
                 t1 = time.perf_counter()
-                chunk = engine.prepare(matcher, [faces[i] for i in probes[b:b + batch]], cascade)
+                chunk_faces = [faces[i] for i in probes[b:b + batch]]
+                chunk = engine.prepare(matcher, chunk_faces, cascade)
                 prepare_s += time.perf_counter() - t1
-                rows += sharded.scores(chunk) if cascade is None else sharded.cascade(chunk, cascade)
+                if cascade is None:
+                    rows += sharded.scores(chunk)
+                else:
+                    screen = None if keypoints is None else screen_gallery.scores(
+                        engine.prepare(keypoints, chunk_faces))
+                    rows += sharded.cascade(chunk, cascade, screen)
                 bar.update(len(chunk))
     S = np.array([r[0] for r in rows]).reshape(len(probes), len(gallery))
     tiebreak = np.array([r[1] for r in rows]).reshape(S.shape)

@@ -7,6 +7,9 @@ one full ICP per enrolled face; this costs one full ICP per shortlisted face).
    move most). Two faces differ by the mean squared depth difference over the `keep` share of their
    common cells that agree best, after removing the median difference (a z shift). One vectorised pass
    over the gallery; the best `shortlist` faces go on.
+   Or (`screen = "keypoints"`, evaluation only) the keypoint matcher (§8.10.2, `matching.keypoints`):
+   the gallery's keypoint templates are made at enrolment and the `shortlist` faces with the most
+   consistent keypoint matches go on.
 2. Full ICP with the matcher's own settings on the shortlist: the same scores as exhaustive matching.
 Faces off the shortlist score −inf (no match); a gallery no larger than the shortlist passes whole.
 A coarse ICP (few points and iterations) was tried as a middle stage and dropped: on the synthetic
@@ -23,6 +26,9 @@ from facerec3d.matching.base import Matcher, rank
 from facerec3d.matching.icp import ICPMatcher
 
 
+SCREENS = ("depth", "keypoints")
+
+
 @dataclass(frozen=True)
 class CascadeConfig:
     """Cascade settings (chosen on the synthetic train60 set; see the README for test60's figures)."""
@@ -32,10 +38,13 @@ class CascadeConfig:
     min_y_mm: float = -15.0  # mm: ... and at or above this height (the nose tip is at y = 0, +y up)
     keep: float = 0.8  # share of the common cells, those that agree best, that the screen distance uses
     shortlist: int = 20  # faces passed from the screen to full ICP
+    screen: str = "depth"  # "depth" (the descriptor above) or "keypoints" (§8.10.2; evaluation only)
 
     def __post_init__(self) -> None:
         if self.shortlist < 1 or not 0 < self.keep <= 1:
             raise ValueError("cascade shortlist must be >= 1 and keep in (0, 1]")
+        if self.screen not in SCREENS:
+            raise ValueError(f"unknown cascade screen {self.screen!r}: use one of {SCREENS}")
         if self.cell_mm <= 0 or self.radius_mm <= 0:
             raise ValueError("cascade cell_mm and radius_mm must be positive")
 

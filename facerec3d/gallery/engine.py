@@ -114,7 +114,8 @@ def _enroll(face: FaceScan, matcher: Matcher) -> Template:
 
 
 def _prepare(face: FaceScan, matcher: Matcher, cascade: CascadeConfig | None) -> Probe:
-    return Probe(matcher.prepare(face), None if cascade is None else depth_descriptor(face.points, cascade))
+    depth = cascade is not None and cascade.screen == "depth"
+    return Probe(matcher.prepare(face), depth_descriptor(face.points, cascade) if depth else None)
 
 
 def _call(fn: Callable, item: Any, args: tuple) -> Any:
@@ -246,16 +247,24 @@ class ShardedGallery:
         rows = self._per_shard([[(_scores, p.prepared, None)] * len(self.keys) for p in probes])
         return [(np.concatenate([r[0] for r in row]), np.concatenate([r[1] for r in row])) for row in rows]
 
-    def cascade(self, probes: Sequence[Probe],
-                config: CascadeConfig) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    def cascade(self, probes: Sequence[Probe], config: CascadeConfig,
+                screen: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
+                ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """(scores, tiebreak, shortlist) of each probe through the cascade: full-ICP scores for the shortlisted
-        gallery indices (sorted), −inf (tiebreak 0) elsewhere."""
+        gallery indices (sorted), −inf (tiebreak 0) elsewhere. The shortlist is the best of the depth screen,
+        or of `screen`: each probe's (scores, tiebreak) against the whole gallery by another matcher (e.g.
+        a keypoint gallery's `scores`)."""
         check_cascadable(self.matcher)
         n = len(self)
-        if any(p.descriptor is None for p in probes):
-            raise ValueError("cascade probes need depth descriptors: Engine.prepare(..., cascade=config)")
-        screen = self._per_shard([[(_screen, p.descriptor, config)] * len(self.keys) for p in probes])
-        shortlists = [np.sort(best(-np.concatenate(row), config.shortlist)) for row in screen]
+        if screen is None:
+            if config.screen != "depth":
+                raise ValueError(f"a {config.screen} screen needs that matcher's scores against the gallery (screen=)")
+            if any(p.descriptor is None for p in probes):
+                raise ValueError("cascade probes need depth descriptors: Engine.prepare(..., cascade=config)")
+            rows = self._per_shard([[(_screen, p.descriptor, config)] * len(self.keys) for p in probes])
+            shortlists = [np.sort(best(-np.concatenate(row), config.shortlist)) for row in rows]
+        else:
+            shortlists = [np.sort(best(s, config.shortlist, t)) for s, t in screen]
         calls = [[None if loc is None else (_scores, p.prepared, loc) for loc in self._local(sl)]
                  for p, sl in zip(probes, shortlists)]
         out = []

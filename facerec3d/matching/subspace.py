@@ -124,8 +124,8 @@ class _SubspaceMatcher(Matcher):
 
     config: PCAConfig | LDAConfig
 
-    def __init__(self, config) -> None:
-        self.config = config
+    def __init__(self, config: PCAConfig | LDAConfig | None = None) -> None:
+        self.config = self.config_class() if config is None else config
         self.mean: np.ndarray | None = None  # (d,) mm: training mean depth map
         self.projection: np.ndarray | None = None  # (d, k)
         self.scale: np.ndarray | None = None  # (k,) standard deviations of the training features
@@ -201,9 +201,6 @@ class PCAMatcher(_SubspaceMatcher):
     name = "pca"
     config_class = PCAConfig
 
-    def __init__(self, config: PCAConfig = PCAConfig()) -> None:
-        super().__init__(config)
-
     def fit(self, scans: Sequence[FaceScan], subjects: Sequence[str]) -> PCAMatcher:
         """Learn the mean and principal directions from preprocessed training faces (§8.7.2)."""
         X = self._training_matrix(scans)
@@ -217,9 +214,6 @@ class LDAMatcher(_SubspaceMatcher):
 
     name = "lda"
     config_class = LDAConfig
-
-    def __init__(self, config: LDAConfig = LDAConfig()) -> None:
-        super().__init__(config)
 
     def fit(self, scans: Sequence[FaceScan], subjects: Sequence[str]) -> LDAMatcher:
         """Learn PCA (§8.8.3) then the Fisher directions (§8.8.2) from training faces of ≥ 2 subjects."""
