@@ -111,3 +111,25 @@ def test_keypoint_screen_shortlists_the_true_subject_identically_on_one_and_two_
     assert (tmp_path / "kp1" / "scores.txt").read_text() == (tmp_path / "kp2" / "scores.txt").read_text()
     scores = [line.split() for line in (tmp_path / "kp1" / "scores.txt").read_text().splitlines()]
     assert sum(s[3] == "-inf" for s in scores) == len(scores) // 2  # two of four faces per probe are screened out
+
+
+@pytest.mark.parametrize("method, options", [
+    ("region-icp", {"regions": ["nose", "eyes-forehead"], "normalisation": "z-score", "icp": {"fine_points": 300}}),
+    ("fusion", {"members": ["icp", "region-icp"], "normalisation": "min-max",
+                "member_options": {"region-icp": {"regions": ["nose"], "normalisation": "tanh"}}}),
+])
+def test_gallery_normalised_scores_do_not_depend_on_the_sharding(method, options):
+    """Region ICP and fusion normalise over the whole gallery: 2 shards must give the 1-shard scores."""
+    from facerec3d.matching.registry import make_matcher
+    from tests.test_regions import model_face
+
+    matcher = make_matcher(method, options)
+    gallery = [model_face(s) for s in range(5)]
+    probes = [model_face(s, "smile") for s in (1, 3)]
+    templates = [matcher.enroll(f) for f in gallery]
+    expected = [matcher.scores(matcher.prepare(p), templates)[0] for p in probes]
+    with Engine.create(2) as two:
+        rows = two.load(matcher, templates).scores(two.prepare(matcher, probes))
+    for (s, _), e in zip(rows, expected):
+        np.testing.assert_array_equal(s, e)
+    assert [int(np.argmax(s)) for s, _ in rows] == [1, 3]

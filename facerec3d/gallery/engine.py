@@ -91,6 +91,12 @@ def _scores(key: str, probe: Any, indices: np.ndarray | None) -> tuple[np.ndarra
     return scores, np.zeros_like(scores) if tiebreak is None else tiebreak
 
 
+def _partial(key: str, probe: Any) -> np.ndarray:
+    """The shard's partial scores of a prepared probe (Matcher.partial_scores)."""
+    s = _shard(key)
+    return s.matcher.partial_scores(probe, s.templates)
+
+
 def _screen(key: str, descriptor: np.ndarray, config: CascadeConfig) -> np.ndarray:
     """Cascade stage 1 on the shard: depth-screen distances (mm²); the shard's descriptors are made once."""
     s = _shard(key)
@@ -243,9 +249,14 @@ class ShardedGallery:
         return out
 
     def scores(self, probes: Sequence[Probe]) -> list[tuple[np.ndarray, np.ndarray]]:
-        """(scores (n,), tiebreak (n,)) of each probe against the whole gallery (exhaustive)."""
-        rows = self._per_shard([[(_scores, p.prepared, None)] * len(self.keys) for p in probes])
-        return [(np.concatenate([r[0] for r in row]), np.concatenate([r[1] for r in row])) for row in rows]
+        """(scores (n,), tiebreak (n,)) of each probe against the whole gallery (exhaustive): the shards'
+        partial scores joined, then merged as one gallery (Matcher.merge_scores)."""
+        rows = self._per_shard([[(_partial, p.prepared)] * len(self.keys) for p in probes])
+        out = []
+        for row in rows:
+            scores, tiebreak = self.matcher.merge_scores(np.concatenate(row, axis=-1))
+            out.append((scores, np.zeros_like(scores) if tiebreak is None else tiebreak))
+        return out
 
     def cascade(self, probes: Sequence[Probe], config: CascadeConfig,
                 screen: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,

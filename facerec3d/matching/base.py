@@ -149,6 +149,23 @@ class Matcher(ABC):
         p = self._probe(probe)
         return np.array([self.score(p, t) for t in templates], dtype=np.float64), None
 
+    # A gallery split into shards (gallery.engine) is scored shard by shard: `partial_scores` on each shard,
+    # concatenated along the last axis, then `merge_scores` once, so that matchers whose scores depend on the
+    # whole gallery (normalisation over it: region ICP, fusion) give the same scores however it is split.
+    @property
+    def n_partial(self) -> int:
+        """Rows of `partial_scores`."""
+        return 2
+
+    def partial_scores(self, probe: FaceScan | Any, templates: Sequence[Template]) -> np.ndarray:
+        """(n_partial, n): what can be computed template by template (by default the scores and tiebreak)."""
+        s, t = self.scores(probe, templates)
+        return np.stack([s, np.zeros_like(s) if t is None else np.asarray(t, dtype=np.float64)])
+
+    def merge_scores(self, partial: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """(scores, tiebreak) of a whole gallery from its partial scores."""
+        return partial[0], partial[1]
+
     def identify(self, probe: FaceScan | Any, gallery: Sequence[Template], k: int = 5) -> list[tuple[int, float]]:
         """The k best gallery entries as (index, score), best first; near-ties broken by the larger tiebreak."""
         s, tiebreak = self.scores(probe, gallery)

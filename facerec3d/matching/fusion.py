@@ -209,15 +209,25 @@ class FusionMatcher(Matcher):
         """Each member's prepared probe."""
         return [m.prepare(scan) for m in self.members]
 
-    def member_scores(self, probe: FaceScan | list, templates: Sequence[Template]) -> np.ndarray:
-        """The members' raw scores (k, n) of a probe against the templates."""
+    @property
+    def n_partial(self) -> int:
+        return sum(m.n_partial for m in self.members)
+
+    def partial_scores(self, probe: FaceScan | list, templates: Sequence[Template]) -> np.ndarray:
+        """The members' partial scores, stacked (Σ members' n_partial, n)."""
         p = self._probe(probe)
         parts = [unpack(t) for t in templates]
-        return np.stack([m.scores(p[k], [q[k] for q in parts])[0] for k, m in enumerate(self.members)])
+        return np.concatenate([m.partial_scores(p[k], [q[k] for q in parts]) for k, m in enumerate(self.members)])
+
+    def merge_scores(self, partial: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Each member's scores merged over the whole gallery, then normalised and fused."""
+        bounds = np.cumsum([0] + [m.n_partial for m in self.members])
+        S = np.stack([m.merge_scores(partial[a:b])[0] for m, a, b in zip(self.members, bounds[:-1], bounds[1:])])
+        c = self.config
+        return fuse(S, c.rule, c.normalisation, c.weights, c.top)
 
     def scores(self, probe: FaceScan | list, templates: Sequence[Template]) -> tuple[np.ndarray, np.ndarray | None]:
-        c = self.config
-        return fuse(self.member_scores(probe, templates), c.rule, c.normalisation, c.weights, c.top)
+        return self.merge_scores(self.partial_scores(probe, templates))
 
     def score(self, probe: FaceScan | list, template: Template) -> float:
         return float(self.scores(probe, [template])[0][0])

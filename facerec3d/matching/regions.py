@@ -152,7 +152,11 @@ class RegionICPMatcher(Matcher):
                                            None if scan.colors is None else scan.colors[mask], cfg.icp))
         return RegionProbe(scan.meta.subject, scan.meta.scan_id, regions)
 
-    def region_scores(self, probe: FaceScan | RegionProbe, templates: Sequence[Template]) -> np.ndarray:
+    @property
+    def n_partial(self) -> int:
+        return len(self.config.region_names())
+
+    def partial_scores(self, probe: FaceScan | RegionProbe, templates: Sequence[Template]) -> np.ndarray:
         """Each region's −MSE (mm²) against each template: (regions, templates); −inf for a missing region."""
         p = self._probe(probe)
         S = np.full((len(p.regions), len(templates)), -np.inf)
@@ -162,10 +166,14 @@ class RegionICPMatcher(Matcher):
                 S[k] = self._icp.data_scores(region, galleries)[0]
         return S
 
+    def merge_scores(self, partial: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The regions' scores fused over the whole gallery."""
+        c = self.config
+        return fuse(partial, c.rule, c.normalisation, c.weights, c.top)
+
     def scores(self, probe: FaceScan | RegionProbe,
                templates: Sequence[Template]) -> tuple[np.ndarray, np.ndarray | None]:
-        c = self.config
-        return fuse(self.region_scores(probe, templates), c.rule, c.normalisation, c.weights, c.top)
+        return self.merge_scores(self.partial_scores(probe, templates))
 
     def score(self, probe: FaceScan | RegionProbe, template: Template) -> float:
         return float(self.scores(probe, [template])[0][0])
