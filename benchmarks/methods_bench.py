@@ -1,7 +1,7 @@
 """Every matching method on the same synthetic protocol, side by side (chapter §8.6–8.10).
 
     python benchmarks/methods_bench.py [--subjects 60] [--scans 5] [--data bench-out/data] [--out bench-out/methods]
-        [--methods icp,pca,lda,curvature,region-icp,keypoints,fusion=examples/fusion-icp-region.toml] [--jobs 2]
+        [--methods icp,pca,...,fusion=examples/fusion-icp-region.toml] [--jobs 2]
 
 Three synthetic datasets (FRGC layout, made once under --data, then reused):
 `testN` (mixed expressions at 0.6–1.0 strength), `strongN` (the same
@@ -33,7 +33,8 @@ from facerec3d.matching.registry import make_matcher
 from facerec3d.preprocess import PreprocessConfig
 from facerec3d.preprocess.batch import preprocess_files
 
-DEFAULT_METHODS = "icp,pca,lda,curvature,region-icp,keypoints,fusion=examples/fusion-icp-region.toml"
+DEFAULT_METHODS = ("icp,pca,lda,curvature,region-icp,region-icp=examples/region-committee.toml,keypoints,"
+                   "fusion=examples/fusion-icp-region.toml")
 
 
 def datasets(root: Path, subjects: int, scans: int) -> dict[str, Path]:
