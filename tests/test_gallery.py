@@ -148,6 +148,15 @@ def test_cli_enroll_identify_verify_and_gallery(tmp_path):
     other = next(s for _, s, *_ in rows if s != probe_subject)
     r = run.invoke(main, ["verify", str(probe), "--gallery", store, "--claim", other, "--cache", cache])
     assert r.exit_code == 1 and r.output.startswith("reject"), r.output
+    # region ICP normalises over the gallery: verification scores the probe against all of it
+    rstore = str(tmp_path / "r.sqlite")
+    r = run.invoke(main, ["enroll", *map(str, gallery_scans), "--gallery", rstore, "--method", "region-icp",
+                          "--jobs", "1", "--cache", cache])
+    assert r.exit_code == 0, r.output
+    for claim, code in ((probe_subject, 0), (other, 1)):
+        r = run.invoke(main, ["verify", str(probe), "--gallery", rstore, "--claim", claim, "--threshold", "0",
+                              "--cache", cache])
+        assert r.exit_code == code, r.output
     cfg = tmp_path / "other.json"
     cfg.write_text(json.dumps({"crop_radius_mm": 70}))
     r = run.invoke(main, ["identify", str(probe), "--gallery", store, "--config", str(cfg), "--cache", cache])

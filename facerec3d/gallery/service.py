@@ -159,17 +159,19 @@ def identify_scan(store: GalleryStore, probe: str | Path, k: int = 5, cascade: C
 def verify_scan(store: GalleryStore, probe: str | Path, claim: str, threshold: float | None = None,
                 config: PreprocessConfig | None = None, cache: str | Path | None = None) -> tuple[bool, float, float]:
     """(accepted, score, threshold): the probe's best score against the claimed subject's templates, accepted
-    when it reaches the threshold (default: DEFAULT_THRESHOLDS of the gallery's method)."""
+    when it reaches the threshold (default: DEFAULT_THRESHOLDS of the gallery's method). Methods whose scores
+    are normalised over the gallery (`Matcher.cohort_scores`) score the probe against the whole gallery."""
     matcher = store.matcher()
     if threshold is None:
         if matcher.name not in DEFAULT_THRESHOLDS:
             raise GalleryError(f"no default threshold for method {matcher.name!r}: give --threshold")
         threshold = DEFAULT_THRESHOLDS[matcher.name]
-    entries = store.entries(subject=claim)
-    if not entries:
+    claimed = [e.id for e in store.entries(subject=claim)]
+    if not claimed:
         raise GalleryError(f"{store.path}: subject {claim!r} is not enrolled")
+    entries = store.entries() if matcher.cohort_scores else store.entries(subject=claim)
     face = load_probe(store, probe, config, cache)
     scores, _ = matcher.scores(matcher.prepare(face), store.templates(entries))
-    score = float(scores.max())
+    score = float(max(s for s, e in zip(scores, entries) if e.id in claimed))
     return score >= threshold, score, threshold
 

@@ -93,6 +93,9 @@ class Matcher(ABC):
 
     name: str = "matcher"
     config_class: type | None = None
+    #: True when a template's score depends on the other templates scored with it (normalisation over the
+    #: gallery): verification must then score the probe against the whole gallery, not the claim alone.
+    cohort_scores: bool = False
 
     @classmethod
     def from_options(cls, options: Mapping[str, Any] | None = None) -> "Matcher":

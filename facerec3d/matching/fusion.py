@@ -172,6 +172,7 @@ class FusionMatcher(Matcher):
 
     name = "fusion"
     config_class = FusionConfig
+    cohort_scores = True  # normalised over the gallery scored with the probe
 
     def __init__(self, config: FusionConfig = FusionConfig()):
         from facerec3d.matching.registry import make_matcher

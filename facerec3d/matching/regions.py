@@ -128,6 +128,7 @@ class RegionICPMatcher(Matcher):
 
     name = "region-icp"
     config_class = RegionICPConfig
+    cohort_scores = True  # normalised over the gallery scored with the probe
 
     def __init__(self, config: RegionICPConfig = RegionICPConfig()):
         self.config = config
