@@ -178,8 +178,8 @@ def _cascade_options(fn, screens: bool = False):
     if screens:
         fn = click.option("--screen", type=click.Choice(["depth", "keypoints"]), default="depth", show_default=True,
                           help="With --cascade: the first stage (depth descriptor, or keypoint matching §8.10.2).")(fn)
-    return click.option("--cascade", is_flag=True, help="ICP only: screen the gallery by a depth descriptor and run "
-                        "full ICP on the shortlist only (faces off it score -inf).")(fn)
+    return click.option("--cascade", is_flag=True, help="ICP only: screen the gallery cheaply (a depth descriptor) and "
+                        "run full ICP on the shortlist only (faces off it score -inf).")(fn)
 
 
 def _cascade_config(cascade: bool, shortlist: int, screen: str = "depth"):
