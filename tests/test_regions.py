@@ -4,35 +4,27 @@ identification of expressive probes, method config round trip, save / load."""
 import numpy as np
 import pytest
 
-from facerec3d import FaceScan, ScanMeta
+from facerec3d import FaceScan
 from facerec3d.config import read_settings
-from facerec3d.datasets.model import EXPRESSION_PRESETS, load_model
-from facerec3d.datasets.synthetic import ScannerConfig, identity_coefficients, quick_scan
+from facerec3d.datasets.model import load_model
+from facerec3d.datasets.synthetic import ScannerConfig, quick_scan
 from facerec3d.matching.base import rank
 from facerec3d.matching.expression import expression_mobility
 from facerec3d.matching.icp import ICPMatcher
 from facerec3d.matching.registry import load_matcher, make_matcher
 from facerec3d.matching.regions import RegionICPConfig, RegionICPMatcher, region_masks
 from facerec3d.preprocess import Preprocessor
-from facerec3d.preprocess.resample import ResampleConfig, depth_to_scan, rasterize_depth
+from facerec3d.gallery.synthetic import frontal_face
 
 SMALL = ScannerConfig(rows=320, cols=400, focal_px=1000.0)
 SUBJECTS = 8
 
 
 def model_face(subject: int, expression: str = "neutral", noise_mm: float = 0.2) -> FaceScan:
-    """A face as preprocessing leaves it, straight from the model: nose tip at the origin, frontal, on the
-    1 mm grid, cropped to 80 mm, with Gaussian depth noise and the model's true fiducials as landmarks."""
-    model = load_model()
-    v = model.shape(identity_coefficients(subject), EXPRESSION_PRESETS[expression])
-    v = v - v[model.nose_tip]
-    tris = model.triangles[(model.region[model.triangles] == 0).all(axis=1)]
-    z = rasterize_depth(v, tris)
-    z += np.random.default_rng([subject, len(expression)]).normal(0.0, noise_mm, z.shape)
-    scan = depth_to_scan(z, ResampleConfig())
-    scan = scan.subset(np.linalg.norm(scan.points, axis=1) <= 80.0)
-    meta = ScanMeta(subject=f"s{subject}", scan_id=f"s{subject}-{expression}", expression=expression)
-    return scan.replace(landmarks=model.fiducials(v), meta=meta)
+    """A face as preprocessing leaves it, straight from the model (gallery.synthetic), with depth noise and the
+    model's true fiducials as landmarks; subject ids "s<n>"."""
+    face = frontal_face(subject, noise_mm=noise_mm, seed=len(expression), expression=expression)
+    return face.replace(meta=face.meta.replace(subject=f"s{subject}"))
 
 
 @pytest.fixture(scope="module")

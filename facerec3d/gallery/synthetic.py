@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from facerec3d.datasets.model import load_model
+from facerec3d.datasets.model import EXPRESSION_PRESETS, load_model
 from facerec3d.geometry.transforms import rotation_from_euler
 from facerec3d.preprocess.resample import ResampleConfig, depth_to_scan, rasterize_depth
 from facerec3d.scan import FaceScan, ScanMeta
@@ -17,12 +17,12 @@ CROP_MM = 80.0  # mm: crop radius around the nose tip, as PreprocessConfig.crop_
 
 
 def frontal_face(subject: int, pose_deg: float = 0.0, shift_mm: float = 0.0, noise_mm: float = 0.0,
-                 seed: int | None = None) -> FaceScan:
-    """Identity `subject` as a preprocessed face; a probe of it: moved by a random rotation (≤ pose_deg
-    degrees about each axis) and shift (≤ shift_mm mm per axis), with Gaussian depth noise (σ noise_mm mm),
-    drawn from `seed`."""
+                 seed: int | None = None, expression: str = "neutral") -> FaceScan:
+    """Identity `subject` as a preprocessed face, with the model's true fiducials as landmarks; a probe of
+    it: with an expression (`EXPRESSION_PRESETS`), moved by a random rotation (≤ pose_deg degrees about each
+    axis) and shift (≤ shift_mm mm per axis), with Gaussian depth noise (σ noise_mm mm), drawn from `seed`."""
     model = load_model()
-    v = model.shape(np.random.default_rng(subject).standard_normal(100))
+    v = model.shape(np.random.default_rng(subject).standard_normal(100), EXPRESSION_PRESETS[expression])
     v = v - v[model.nose_tip]
     rng = np.random.default_rng(seed)
     if pose_deg or shift_mm:
@@ -33,4 +33,5 @@ def frontal_face(subject: int, pose_deg: float = 0.0, shift_mm: float = 0.0, noi
     points = scan.points.copy()
     if noise_mm:
         points[:, 2] += rng.normal(0.0, noise_mm, len(points))
-    return scan.replace(points=points, meta=ScanMeta(subject=str(subject), scan_id=f"{subject}-{seed}"))
+    meta = ScanMeta(subject=str(subject), scan_id=f"{subject}-{expression}-{seed}", expression=expression)
+    return scan.replace(points=points, landmarks=model.fiducials(v), meta=meta)
