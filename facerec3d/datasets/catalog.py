@@ -95,6 +95,17 @@ def open_dataset(source: str | Path) -> Dataset:
     raise DatasetError(f"{source}: no FRGC (<subject>d<seq>.abs) or Bosphorus (bsNNN_TYPE_SUB_k.bnt) scans found")
 
 
+def scan_record(path: str | Path) -> ScanRecord | None:
+    """The record of one scan file named as in FRGC (`<subject>d<seq>.abs`) or Bosphorus (`bsNNN_TYPE_SUB_k.bnt`);
+    None for other names."""
+    path = Path(path)
+    if FRGC_PATTERN.match(path.name):
+        return _frgc_record(path)
+    if BOSPHORUS_PATTERN.match(path.name):
+        return _bosphorus_record(path)
+    return None
+
+
 def _frgc_record(path: Path) -> ScanRecord:
     m = FRGC_PATTERN.match(path.name)
     session = next((part for part in path.parts if part in FRGC_SESSIONS), None)

@@ -11,8 +11,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from facerec3d.datasets.catalog import (BOSPHORUS_PATTERN, FRGC_PATTERN, ScanRecord, _bosphorus_record, _frgc_record,
-                                        open_dataset)
+from facerec3d.datasets.catalog import ScanRecord, open_dataset, scan_record
 from facerec3d.evaluation.protocols import split
 from facerec3d.gallery.cascade import CascadeConfig
 from facerec3d.gallery.engine import Engine
@@ -39,12 +38,9 @@ def scan_records(data: Iterable[str | Path], subject: str | None = None,
             dataset = open_dataset(item)
             chosen = split(dataset, None).gallery if gallery_only else range(len(dataset))
             out += [dataset.records[i] for i in chosen]
-        elif FRGC_PATTERN.match(item.name) and subject is None:
-            out.append(_frgc_record(item))
-        elif BOSPHORUS_PATTERN.match(item.name) and subject is None:
-            out.append(_bosphorus_record(item))
         else:
-            out.append(ScanRecord(item, subject or scan_stem(item), scan_stem(item)))
+            named = None if subject is not None else scan_record(item)
+            out.append(named or ScanRecord(item, subject or scan_stem(item), scan_stem(item)))
     return out
 
 
