@@ -84,17 +84,32 @@ def convert(src, dst):
               "(of smile, open-mouth, surprise, frown, puffed-cheeks; default all).")
 @click.option("--expression-strength", nargs=2, type=float, default=(0.6, 1.0), show_default=True,
               help="Range (low high) of the expression strength; 1 1 is full strength.")
-@click.option("--rows", default=480, show_default=True, help="Range image rows.")
-@click.option("--cols", default=640, show_default=True, help="Range image columns.")
+@click.option("--sensor", type=click.Choice(["frgc", "kinect-v2", "kinect-v2-8bit", "realsense"]), default="frgc",
+              show_default=True, help="Simulated depth sensor: FRGC's Minolta laser scanner, Kinect v2 time of "
+              "flight (1 mm, or 4/8 mm depth steps), RealSense D435 active stereo.")
+@click.option("--identities", type=click.Choice(["model", "outside-model"]), default="model", show_default=True,
+              help="Faces from the morphable model, or beyond it: wider identities, a non-linear deformation "
+              "and occluders (hair fringe, glasses, hand).")
+@click.option("--rows", type=int, help="Range image rows (default: the sensor's).")
+@click.option("--cols", type=int, help="Range image columns (default: the sensor's; the focal length scales with it).")
 @friendly
-def synth(out, subjects, scans, fmt, seed, first_subject, expressions, expression_strength, rows, cols):
+def synth(out, subjects, scans, fmt, seed, first_subject, expressions, expression_strength, sensor, identities, rows,
+          cols):
     """Write a synthetic dataset of range scans with ground truth to OUT."""
-    from facerec3d.datasets.synthetic import EXPRESSIONS, DatasetConfig, ScannerConfig, write_dataset
+    from dataclasses import replace
+
+    from facerec3d.datasets.synthetic import (EXPRESSIONS, DatasetConfig, identity_profile, sensor_profile,
+                                              write_dataset)
 
     chosen = tuple(e.strip() for e in expressions.split(",") if e.strip()) if expressions else EXPRESSIONS
+    scanner = sensor_profile(sensor)
+    if rows is not None or cols is not None:  # overrides; the focal length keeps the field of view
+        cols = scanner.cols if cols is None else cols
+        rows = scanner.rows if rows is None else rows
+        scanner = replace(scanner, rows=rows, cols=cols, focal_px=scanner.focal_px * cols / scanner.cols)
     cfg = DatasetConfig(subjects=subjects, scans=scans, seed=seed, first_subject=first_subject, expressions=chosen,
-                        expression_strength=tuple(expression_strength),
-                        scanner=ScannerConfig(rows=rows, cols=cols, focal_px=1450.0 * cols / 640))
+                        expression_strength=tuple(expression_strength), scanner=scanner,
+                        identity=identity_profile(identities))
     manifest = write_dataset(out, cfg, fmt, progress=True)
     click.echo(f"wrote {subjects * scans} scans; manifest and ground truth: {manifest}")
 
@@ -131,24 +146,29 @@ LANDMARK_COLUMNS = ("nose_tip", "nose_bridge", "left_eye_inner", "right_eye_inne
 @click.option("--config", "config_file", type=click.Path(dir_okay=False), help="TOML or JSON preprocessing settings.")
 @click.option("--format", "fmt", type=click.Choice(["npz", "ply"]), default="npz", show_default=True)
 @click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", help="Processes to use.")
+@click.option("--intrinsics", type=click.Path(dir_okay=False), default=None,
+              help="Depth frames: pinhole intrinsics JSON (fx, fy, cx, cy); default: an intrinsics.json beside them.")
 @friendly
-def preprocess(inputs, outdir, config_file, fmt, jobs):
+def preprocess(inputs, outdir, config_file, fmt, jobs, intrinsics):
     """Preprocess scans INPUTS into normalised faces in OUT, with OUT/landmarks.csv (chapter §8.5)."""
     from tqdm import tqdm
 
     from facerec3d.io import save_scan, scan_stem
     from facerec3d.preprocess import PreprocessConfig, landmarks_in_input_frame
     from facerec3d.preprocess.batch import preprocess_files
+    from facerec3d.preprocess.pipeline import QUALITY_FIELDS, scan_quality
 
     config = PreprocessConfig.load(config_file) if config_file else PreprocessConfig()
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
-    header = ["scan", "status", "output"] + [f"{n}_{'xyz'[k]}" for n in LANDMARK_COLUMNS for k in range(3)]
+    header = (["scan", "status", "output"] + [f"{n}_{'xyz'[k]}" for n in LANDMARK_COLUMNS for k in range(3)]
+              + list(QUALITY_FIELDS))
     failed = 0
     with open(out / "landmarks.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(header)
-        bar = tqdm(preprocess_files(inputs, config, jobs), total=len(inputs), unit="scan", desc="preprocessing")
+        bar = tqdm(preprocess_files(inputs, config, jobs, intrinsics=intrinsics), total=len(inputs), unit="scan",
+                   desc="preprocessing")
         for outcome in bar:
             if outcome.face is None:
                 failed += 1
@@ -159,9 +179,12 @@ def preprocess(inputs, outdir, config_file, fmt, jobs):
             save_scan(outcome.face, target)
             lm = landmarks_in_input_frame(outcome.face)
             coords = [f"{lm[n][k]:.3f}" if n in lm else "" for n in LANDMARK_COLUMNS for k in range(3)]
-            w.writerow([outcome.path, "ok", str(target)] + coords)
+            quality = scan_quality(outcome.face)
+            w.writerow([outcome.path, "ok", str(target)] + coords + [quality.get(k, "") for k in QUALITY_FIELDS])
             tqdm.write(f"{outcome.path}: kept -> {target}")
-    click.echo(f"{len(inputs) - failed} kept, {failed} failed; landmarks in {out / 'landmarks.csv'}")
+    click.echo(f"{len(inputs) - failed} kept, {failed} failed; landmarks and quality in {out / 'landmarks.csv'}")
+    if failed == len(inputs):
+        sys.exit(1)
 
 
 def _engine_options(fn):
@@ -220,11 +243,13 @@ def _print_metrics(m: dict) -> None:
               help="Default: from the dataset (Bosphorus folder, manifest roles, else FRGC).")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False), help="TOML or JSON preprocessing settings.")
 @click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
+@click.option("--intrinsics", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="Depth frames: pinhole intrinsics JSON (fx, fy, cx, cy); default: an intrinsics.json beside them.")
 @functools.partial(_cascade_options, screens=True)
 @_engine_options
 @friendly
-def evaluate(data, method, method_config, train, model, out, protocol, config_file, cache, cascade, shortlist, screen,
-             jobs, scheduler):
+def evaluate(data, method, method_config, train, model, out, protocol, config_file, cache, intrinsics, cascade,
+             shortlist, screen, jobs, scheduler):
     """Evaluate a method on DATA (FRGC or Bosphorus folder, or manifest CSV): metrics, scores, plots, report."""
     from facerec3d.config import read_settings
     from facerec3d.evaluation.run import DEFAULT_CACHE, evaluate as run
@@ -233,7 +258,8 @@ def evaluate(data, method, method_config, train, model, out, protocol, config_fi
     config = PreprocessConfig.load(config_file) if config_file else PreprocessConfig()
     options = read_settings(method_config) if method_config else None
     m = run(data, method, out, protocol, jobs, cache or DEFAULT_CACHE, config, options=options, train=train,
-            model=model, scheduler=scheduler, cascade=_cascade_config(cascade, shortlist, screen))
+            model=model, scheduler=scheduler, cascade=_cascade_config(cascade, shortlist, screen),
+            intrinsics=intrinsics)
     _print_metrics(m)
     click.echo(f"report: {Path(out) / 'report.html'}")
 

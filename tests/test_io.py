@@ -267,6 +267,22 @@ def test_npz_keeps_landmarks_and_the_valid_mask(tmp_path, cap):
         load_scan(tmp_path / "nan.npz")
 
 
+def test_npz_keeps_the_scans_quality_record_as_json_and_refuses_a_bad_one(tmp_path, cap):
+    quality = {"fit_rms_mm": 0.9, "pitch_mm": 3.4, "depth_step_mm": 8.0}
+    extra = {"quality": quality, "to_frontal": np.eye(3, 4)}
+    save_scan(cap.replace(meta=cap.meta.replace(extra=extra)), tmp_path / "s.npz")
+    back = load_scan(tmp_path / "s.npz")
+    assert back.meta.extra["quality"] == quality
+    np.testing.assert_array_equal(back.meta.extra["to_frontal"], np.eye(3, 4))
+    with np.load(tmp_path / "s.npz", allow_pickle=False) as z:
+        arrays = dict(z)
+    for bad, reason in ((np.array("{not json"), "not valid JSON"), (np.array("[1]"), "JSON object"),
+                        (np.arange(3), "one JSON text")):
+        np.savez(tmp_path / "bad.npz", **{**arrays, "meta_json": bad})
+        with pytest.raises(ScanFormatError, match=reason):
+            load_scan(tmp_path / "bad.npz")
+
+
 # --------------------------------------------------------------- bad input
 CAP_ABS = "1 rows\n2 columns\npixels (flag X Y Z):\n"
 BAD_FILES = [

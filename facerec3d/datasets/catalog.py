@@ -10,8 +10,9 @@ owners and point facerec3d at them in place; nothing is copied.
 - Bosphorus: `bsNNN_TYPE_SUB_k.bnt`; TYPE N is neutral, E / LFAU / UFAU / CAU
   are expressions, YR / PR / CR are poses, O occlusions.
 - Manifest CSV: columns `path,subject` and optional `expression`
-  (`neutral` / `non-neutral` or a finer label), `role` (`gallery` / `probe`)
-  and `session`; relative paths are relative to the manifest's folder.
+  (`neutral` / `non-neutral` or a finer label), `role` (`gallery` / `probe`),
+  `session` and `pose` (a head-pose label, reported as its own probe subsets); scans may be
+  depth frames (`.png`, `.tif`) with an `intrinsics.json` beside them or above; relative paths are relative to the manifest's folder.
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ class ScanRecord:
     label: str | None = None
     session: str | None = None
     role: str | None = None
+    pose: str | None = None  # a manifest's head-pose label (e.g. front, left, up): its own probe subset
 
 
 @dataclass(frozen=True)
@@ -120,7 +122,7 @@ def _bosphorus_record(path: Path) -> ScanRecord:
 
 
 def read_manifest(path: str | Path) -> Dataset:
-    """A dataset from a manifest CSV (`path,subject[,expression][,role][,session][,label]`)."""
+    """A dataset from a manifest CSV (`path,subject[,expression][,role][,session][,label][,pose]`)."""
     path = Path(path)
     try:
         with open(path, newline="") as f:
@@ -142,7 +144,7 @@ def read_manifest(path: str | Path) -> Dataset:
             raise DatasetError(f"{path}, line {line}: role must be gallery or probe, not {role!r}")
         kind = None if expression is None else ("neutral" if expression == "neutral" else "expression")
         records.append(ScanRecord(p, row["subject"].strip(), scan_stem(p), expression, kind, label,
-                                  row.get("session") or None, role))
+                                  row.get("session") or None, role, (row.get("pose") or "").strip() or None))
     return Dataset(tuple(records), "manifest", path)
 
 

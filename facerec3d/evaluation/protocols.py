@@ -61,6 +61,8 @@ def _subsets(records, probes: list[int], kinds=("neutral", "non-neutral")) -> di
             members = [k for k, i in enumerate(probes) if records[i].kind == name]
         if members:
             out[name] = members
+    for pose in sorted({records[i].pose for i in probes if records[i].pose}):  # a manifest's pose column
+        out[f"pose:{pose}"] = [k for k, i in enumerate(probes) if records[i].pose == pose]
     return out
 
 

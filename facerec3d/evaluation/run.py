@@ -30,14 +30,15 @@ from facerec3d.matching.base import Matcher
 from facerec3d.matching.keypoints import KeypointMatcher
 from facerec3d.matching.registry import load_matcher, make_matcher
 from facerec3d.preprocess.batch import preprocess_files
-from facerec3d.preprocess.pipeline import PreprocessConfig
+from facerec3d.preprocess.pipeline import QUALITY_FIELDS, PreprocessConfig, scan_quality
 
 
 DEFAULT_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "facerec3d" / "preprocessed"
 
-def _preprocess(paths: list, config: PreprocessConfig, jobs: int, cache, progress: bool, desc: str) -> list:
-    return list(tqdm(preprocess_files(paths, config, jobs, cache), total=len(paths), desc=desc, unit="scan",
-                     disable=not progress))
+def _preprocess(paths: list, config: PreprocessConfig, jobs: int, cache, progress: bool, desc: str,
+                intrinsics=None) -> list:
+    return list(tqdm(preprocess_files(paths, config, jobs, cache, intrinsics), total=len(paths), desc=desc,
+                     unit="scan", disable=not progress))
 
 
 def trained_matcher(method: str, options: Mapping[str, Any] | None = None, train: str | Path | None = None,
@@ -69,7 +70,8 @@ def trained_matcher(method: str, options: Mapping[str, Any] | None = None, train
 def evaluate(data: str | Path, method: str = "icp", out: str | Path = "run", protocol: str | None = None,
              jobs: int = 1, cache: str | Path | None = DEFAULT_CACHE, config: PreprocessConfig = PreprocessConfig(),
              progress: bool = True, options: Mapping[str, Any] | None = None, train: str | Path | None = None,
-             model: str | Path | None = None, scheduler=None, cascade: CascadeConfig | None = None) -> dict:
+             model: str | Path | None = None, scheduler=None, cascade: CascadeConfig | None = None,
+             intrinsics: str | Path | None = None) -> dict:
     """Evaluate `method` (with config `options`) on the dataset at `data` and write the run folder `out`;
     returns metrics.json's content. Learnt methods are fitted on the dataset `train` (and the model saved
     as out/model.npz) or loaded from `model`. Enrolment and matching run on a `gallery.engine.Engine`:
@@ -77,7 +79,8 @@ def evaluate(data: str | Path, method: str = "icp", out: str | Path = "run", pro
     identification goes through the cascade (gallery.cascade; its screen the depth descriptor or the keypoint
     matcher, whose gallery is then enrolled too): faces off the shortlist score −inf, and
     metrics.json's "cascade" gives its settings and recall (share of probes of enrolled subjects whose
-    subject is on the shortlist)."""
+    subject is on the shortlist). Depth frames are read with `intrinsics` (a JSON file) when given, else with
+    the intrinsics.json found beside them."""
     matcher, training = trained_matcher(method, options, train, model, jobs, cache, config, progress)
     if cascade is not None:
         check_cascadable(matcher)
@@ -93,7 +96,7 @@ def evaluate(data: str | Path, method: str = "icp", out: str | Path = "run", pro
 
     t0 = time.perf_counter()
     needed = sorted(set(sp.gallery) | set(sp.probes))
-    outcomes = _preprocess([recs[i].path for i in needed], config, jobs, cache, progress, "preprocessing")
+    outcomes = _preprocess([recs[i].path for i in needed], config, jobs, cache, progress, "preprocessing", intrinsics)
     faces, failed = {}, []
     for i, outcome in zip(needed, outcomes):
         if outcome.face is None:
@@ -154,9 +157,14 @@ def evaluate(data: str | Path, method: str = "icp", out: str | Path = "run", pro
         chosen = {sp.probes[k] for k in members}
         masks[name] = np.array([i in chosen for i in probes], dtype=bool)
         subset_failures[name] = len(chosen & failed_probe)
+    quality = [{"path": str(recs[i].path), "role": "gallery" if i in sp.gallery else "probe", **scan_quality(faces[i])}
+               for i in needed if i in faces]
     info = {"method": method, "options": matcher.options(), **training, "protocol": sp.protocol, "dataset": str(data), "layout": dataset.layout,
             "n_gallery": len(gallery), "failures_to_enrol": sum(f["role"] == "gallery" for f in failed),
-            "failed_scans": failed, "timings": timings, "jobs": jobs, "workers": workers, **info_cascade}
+            "failed_scans": failed, "timings": timings, "jobs": jobs, "workers": workers, **info_cascade,
+            "quality_median": {k: float(np.median([q[k] for q in quality if k in q]))
+                               for k in QUALITY_FIELDS if any(k in q for q in quality)},
+            "scan_quality": quality}
     return write_run(out, S, [recs[i].subject for i in probes], [recs[i].scan_id for i in probes],
                      [recs[i].subject for i in enrolled], info, tiebreak=tiebreak, subsets=masks,
                      n_failed=len(failed_probe), subset_failures=subset_failures)

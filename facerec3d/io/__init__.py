@@ -8,6 +8,10 @@
 | .obj, .off, .stl | meshes and point clouds, trimesh (`mesh`) | yes | no |
 | .xyz, .csv, .txt | text point clouds (`text`) | yes | no |
 | .npy, .npz | NumPy range images, depth maps, point sets (`arrays`) | yes | .npz |
+| .png, .tif, .tiff (+ intrinsics.json) | 16-bit depth frames of depth cameras (`depth`) | yes | no (`write_depth_image`) |
+
+A 2-D `.npy` depth array with an `intrinsics.json` beside it (or given) is read
+as a depth frame too.
 
 All coordinates are in mm. Every reader raises `ScanFormatError` naming the
 file and the reason on bad input (truncated, corrupt, mis-sized, non-numeric,
@@ -21,6 +25,7 @@ from pathlib import Path
 from facerec3d.errors import ScanFormatError
 from facerec3d.io.abs import read_abs, write_abs
 from facerec3d.io.arrays import read_numpy, write_npz
+from facerec3d.io.depth import Intrinsics, find_intrinsics, read_depth_image, write_depth_image
 from facerec3d.io.bnt import load_landmarks_lm3, read_bnt, write_bnt, write_lm3
 from facerec3d.io.mesh import read_mesh, read_ply, write_ply
 from facerec3d.io.text import read_text_points
@@ -30,8 +35,10 @@ READERS = {
     ".abs": read_abs, ".abs.gz": read_abs, ".bnt": read_bnt, ".ply": read_ply,
     ".obj": read_mesh, ".off": read_mesh, ".stl": read_mesh,
     ".xyz": read_text_points, ".csv": read_text_points, ".txt": read_text_points,
-    ".npy": read_numpy, ".npz": read_numpy,
+    ".npy": read_numpy, ".npz": read_numpy, ".png": read_depth_image, ".tif": read_depth_image,
+    ".tiff": read_depth_image,
 }
+DEPTH_SUFFIXES = (".png", ".tif", ".tiff")
 WRITERS = {".abs": write_abs, ".abs.gz": write_abs, ".bnt": write_bnt, ".ply": write_ply, ".npz": write_npz}
 SUPPORTED_SUFFIXES = tuple(READERS)
 
@@ -48,15 +55,36 @@ def scan_stem(path: str | Path) -> str:
     return name[: len(name) - len(scan_suffix(path))]
 
 
-def load_scan(path: str | Path) -> FaceScan:
-    """Read a scan; `meta.path` is str(path) and `meta.scan_id` the file stem. ScanFormatError on any bad file."""
-    reader = READERS.get(scan_suffix(path))
+def load_scan(path: str | Path, intrinsics: "Intrinsics | str | Path | None" = None) -> FaceScan:
+    """Read a scan; `meta.path` is str(path) and `meta.scan_id` the file stem. ScanFormatError on any bad file.
+
+    `intrinsics` (an `Intrinsics` or a JSON file) are for depth frames; without them a frame's
+    `intrinsics.json` is looked for beside it and in its parent folders.
+    """
+    suffix = scan_suffix(path)
+    reader = READERS.get(suffix)
     if reader is None:
         raise ScanFormatError(path, f"unknown scan format (supported: {', '.join(SUPPORTED_SUFFIXES)})")
     if not Path(path).is_file():
         raise ScanFormatError(path, "no such file" if not Path(path).exists() else "not a regular file")
-    scan = reader(path)
+    if suffix in DEPTH_SUFFIXES or suffix == ".npy" and _is_depth_npy(path, intrinsics):
+        scan = read_depth_image(path, intrinsics)
+    else:
+        scan = reader(path)
     return scan.replace(meta=scan.meta.replace(path=str(path), scan_id=scan_stem(path)))
+
+
+def _is_depth_npy(path: str | Path, intrinsics) -> bool:
+    """A 2-D `.npy` array that is not an (N, 3) point set, with intrinsics given or found: a depth frame."""
+    if intrinsics is None and find_intrinsics(path) is None:
+        return False
+    try:
+        import numpy as np
+
+        a = np.load(path, mmap_mode="r", allow_pickle=False)
+    except Exception:  # let the reader say what is wrong
+        return False
+    return a.ndim == 2 and a.shape[1] != 3
 
 
 def save_scan(scan: FaceScan, path: str | Path) -> None:
@@ -70,5 +98,6 @@ def save_scan(scan: FaceScan, path: str | Path) -> None:
 __all__ = [
     "SUPPORTED_SUFFIXES", "load_scan", "save_scan", "load_landmarks_lm3", "scan_stem", "scan_suffix",
     "read_abs", "write_abs", "read_bnt", "write_bnt", "write_lm3", "read_ply", "write_ply", "read_mesh",
-    "read_text_points", "read_numpy", "write_npz",
+    "DEPTH_SUFFIXES", "read_text_points", "read_numpy", "write_npz", "Intrinsics", "find_intrinsics", "read_depth_image",
+    "write_depth_image",
 ]

@@ -7,12 +7,15 @@
 - (N, 3) points in mm (rows with NaN dropped).
 `.npz` holds `xyz` (H, W, 3) with optional `valid` (H, W) bool (else NaN marks
 invalid pixels), or `points` (N, 3), and landmarks as (3,) arrays named
-`landmark_<name>`. Either suffix reads either kind of file.
+`landmark_<name>`, and the scan's `meta.extra` (quality, frontal transform) as JSON text in
+`meta_json`. Either suffix reads either kind of file.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+
+import json
 
 import numpy as np
 
@@ -21,6 +24,7 @@ from facerec3d.io.common import MAX_POINTS, grid_scan, library_errors, point_sca
 from facerec3d.scan import FaceScan
 
 LANDMARK_PREFIX = "landmark_"
+META_KEY = "meta_json"  # the scan's meta.extra (quality, frontal transform) as JSON text
 MAX_MEMBER_BYTES = MAX_POINTS * 3 * 8 + 4096  # largest .npz member accepted (uncompressed)
 
 
@@ -59,15 +63,42 @@ def read_numpy(path: str | Path) -> FaceScan:
                 raise ScanFormatError(path, "an .npz scan needs an 'xyz' or a 'points' array")
             scan = _from_array(path, z[key], z["valid"] if key == "xyz" and "valid" in z.files else None)
             landmarks = {k[len(LANDMARK_PREFIX) :]: z[k] for k in z.files if k.startswith(LANDMARK_PREFIX)}
+            extra = _meta_extra(path, z[META_KEY]) if META_KEY in z.files else {}
     for name, v in landmarks.items():
         if v.shape != (3,) or v.dtype.kind not in "fiu" or not np.isfinite(v).all():
             raise ScanFormatError(path, f"landmark {name[:80]!r} is not a finite 3-vector")
-    return scan.replace(landmarks=landmarks)
+    return scan.replace(landmarks=landmarks, meta=scan.meta.replace(extra=extra))
+
+
+def _meta_extra(path: str | Path, value: np.ndarray) -> dict:
+    """The scan's `meta.extra` from its JSON text member (quality, frontal transform); ScanFormatError if bad."""
+    if value.dtype.kind != "U" or value.shape != ():
+        raise ScanFormatError(path, f"'{META_KEY}' must be one JSON text")
+    try:
+        extra = json.loads(str(value))
+    except json.JSONDecodeError as e:
+        raise ScanFormatError(path, f"'{META_KEY}' is not valid JSON ({e.msg})") from None
+    if not isinstance(extra, dict):
+        raise ScanFormatError(path, f"'{META_KEY}' must hold a JSON object")
+    return extra
+
+
+def _jsonable(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"not JSON: {type(value).__name__}")
 
 
 def write_npz(scan: FaceScan, path: str | Path) -> None:
     """Write a scan as compressed `.npz`: `xyz` + `valid` for a grid scan, else `points`; landmarks too (mm)."""
     arrays = {LANDMARK_PREFIX + name: v for name, v in scan.landmarks.items()}
+    if scan.meta.extra:
+        try:  # plain JSON, never pickle: a scan whose extra is not JSON-representable is written without it
+            arrays[META_KEY] = np.array(json.dumps(scan.meta.extra, default=_jsonable))
+        except (TypeError, ValueError):
+            pass
     if scan.grid is not None:
         arrays["xyz"], arrays["valid"] = scan.to_range_image()
     else:

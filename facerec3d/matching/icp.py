@@ -79,6 +79,9 @@ class ICPConfig:
     min_overlap: float = 0.1  # final pairs fewer than this share of the fine probe points: no match (MSE = inf)
     voxel_size: float = 2.0  # mm, enrolment: voxel lookup cell and x–y bucket (§8.6.1); ~0.4 MB per template
     normal_neighbours: int = 16  # k of the PCA normals (§8.6.1; geometry.normals)
+    sensor_scale: float = 1.0  # res = max(point spacing, this × the source scan's pitch or depth step, whichever is
+    #                            larger, as preprocessing measured them): a 1 mm grid resampled from 3.5 mm Kinect
+    #                            pixels in 8 mm depth steps is not 1 mm data (§8.6.1: thresholds follow the resolution)
     seed: int = 0  # random probe subsets
 
     def __post_init__(self) -> None:
@@ -132,7 +135,8 @@ class GalleryIndex(NamedTuple):
             normals = estimate_normals(scan.points, config.normal_neighbours, grid=scan.grid,
                                        grid_shape=scan.grid_shape)
         boundary = boundary_mask(scan.points, grid=scan.grid, grid_shape=scan.grid_shape)
-        return cls.build(scan.points, normals, boundary, scan.colors, resolution=scan.resolution(), config=config)
+        return cls.build(scan.points, normals, boundary, scan.colors, resolution=matching_resolution(scan, config),
+                         config=config)
 
     @classmethod
     def build(cls, points: np.ndarray, normals: np.ndarray, boundary: np.ndarray, colors: np.ndarray | None = None,
@@ -178,6 +182,15 @@ class GalleryIndex(NamedTuple):
 _INDEX_ARRAYS = ("points", "normals", "boundary", "colors", "voxel_first", "voxel_offset", "voxel_index",
                  "bucket_start")
 _INDEX_SCALARS = ("voxel_size", "nx", "ny", "nz", "resolution", "margin")
+
+
+def matching_resolution(scan: FaceScan, config: ICPConfig = ICPConfig()) -> float:
+    """The resolution (mm) ICP's distance thresholds are multiples of: the face's point spacing, or, when the
+    scan it was resampled from was coarser (its measured pitch or depth step, `meta.extra["quality"]`),
+    `sensor_scale` times that."""
+    quality = scan.meta.extra.get("quality", {})
+    source = max(float(quality.get("pitch_mm", 0.0)), float(quality.get("depth_step_mm", 0.0)))
+    return max(scan.resolution(), config.sensor_scale * source)
 
 
 class ProbeData(NamedTuple):

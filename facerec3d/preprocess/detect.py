@@ -8,8 +8,12 @@ covered by data, so that the rims of the scan do not count). Each candidate
 is verified by a rigid fit of the morphable model's mean face around it; the
 candidate where most points fit wins, and a full fit of the model (pose,
 identity, expression; `pose.fit_face_model`) gives the nose tip, the other
-fiducials and the frontal pose. A scan where nothing fits a face is a
-failure to acquire.
+fiducials and the frontal pose. The model's identity prior regularises that
+fit; it does not decide whether there is a face, since real faces lie well
+outside any model's span. A failure to acquire is a scan with no face-shaped
+surface: too few points, nothing the mean face fits, too few points near the
+nose fitting the model, or no nose standing out of the scanned surface in
+the fitted frame (a wall, the back of a head, a hand).
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from numba import njit
 from scipy import ndimage
 
 from facerec3d.errors import FailureToAcquire
+from facerec3d.geometry.transforms import rotation_from_euler
 from facerec3d.preprocess.pose import ModelFit, ModelFitConfig, fit_face_model, hotelling_rotation
 from facerec3d.scan import FaceScan
 
@@ -31,15 +36,31 @@ class DetectConfig:
 
     sample_mm: float = 2.0  # spacing of the sub-sampled range image used for the search
     window_mm: float = 40.0  # the local mean that protrusion is measured against
-    min_coverage: float = 0.7  # share of that window that must hold data
+    min_coverage: float = 0.7  # share of that window that must hold data ...
+    rim_coverage: float = 0.35  # ... or this share, for candidates along the normal at the rim (a nose in profile)
     separation_mm: float = 25.0  # candidates are local maxima over this distance
     candidates: int = 4  # how many candidates are verified
     context_mm: float = 100.0  # points within this distance of a candidate are aligned
     min_coarse_inliers: float = 0.3  # least share of points near a candidate fitting the mean face (rigid)
     min_inliers: float = 0.5  # least share of the scan points near the nose that fit the full face model
-    max_identity_rms: float = 2.0  # RMS of the fitted identity coefficients (prior N(0, 1)) beyond which no face is plausible
-    tie_margin: float = 0.1  # a distinct placement this close to the best one also gets a full fit
-    crop_radius_mm: float = 80.0  # the face is the sphere of this radius around the nose tip
+    min_protrusion_mm: float = 6.0  # the nose tip must stand this far above the plane of the surface around it (a
+    #                                 nose ~10–25 mm, less after smoothing 8 mm depth steps; a wall 0, the back of a
+    #                                 head ~4); measured on the scan, not the model
+    min_seen: float = 0.8  # least share of the fitted face's camera-facing surface the scan agrees with (seen_share)
+    seen_radius_mm: float = 50.0
+    seen_margin_mm: float = 15.0
+    seen_radius_px: float = 1.5
+    tip_radius_mm: float = 8.0  # protrusion: scan points this near the nose axis give the tip's height ...
+    ring_mm: tuple[float, float] = (20.0, 35.0)  # ... above the plane through the points this far from it
+    start_yaws: tuple[float, ...] = (-70.0, -35.0, 0.0, 35.0, 70.0)  # degrees: coarse fits start from the Hotelling
+    #                                                                   frame turned so (a head in profile) ...
+    frontal_yaw: float = 40.0  # ... those of at most this yaw for candidates inside the surface, all for those at its rim
+    crown_mm: tuple[float, float] = (30.0, 190.0)  # a nose tip lies this far below the top of its head (upright) ...
+    crown_reach_mm: float = 250.0  # ... the highest point this far sideways or less ...
+    crown_depth_mm: float = 400.0  # ... and this far in depth (not the wall behind)
+    head_weight: float = 0.5  # placement penalty per 50 mm outside crown_mm
+    finalists: int = 4  # the best distinct coarse placements get a full fit ...
+    identity_penalty: float = 0.1  # ... and the best `placement_score` wins: the identity prior regularises, never gates
     coarse: ModelFitConfig = field(default_factory=lambda: ModelFitConfig(
         identity_modes=0, expression_modes=False, iterations=15, start_distance_mm=20.0, end_distance_mm=5.0,
         max_points=800))  # rigid fit of the mean face, to verify each candidate
@@ -57,6 +78,7 @@ class Detection:
     landmarks: dict[str, np.ndarray]
     fit_rms_mm: float
     inlier_fraction: float
+    protrusion_mm: float
 
 
 def _subsample(scan: FaceScan, spacing_mm: float) -> tuple[FaceScan, float]:
@@ -72,48 +94,93 @@ def _subsample(scan: FaceScan, spacing_mm: float) -> tuple[FaceScan, float]:
 
 
 @njit(cache=True)
-def _protrusion(xyz, valid, half, reach2, min_coverage):  # pragma: no cover - compiled
-    """Height (Z) of each pixel above the mean of the window pixels within `reach` in 3D."""
+def _protrusion(xyz, valid, half, reach2, min_coverage, edge_coverage):  # pragma: no cover - compiled
+    """(height along Z, height along the local surface normal) of each pixel above the window pixels within
+    `reach` in 3D: above their mean depth, and above the plane through their mean with their least-variance
+    direction as normal, turned towards the camera (a nose turned 45° away still stands out of its face); and
+    that height along the normal where the window is only `edge_coverage` full (a nose in profile, at the rim of
+    the scan)."""
     rows, cols = valid.shape
-    out = np.full((rows, cols), -np.inf)
+    out_z = np.full((rows, cols), -np.inf)
+    out_n = np.full((rows, cols), -np.inf)
+    out_e = np.full((rows, cols), -np.inf)
     full = (2 * half + 1) ** 2
     for r in range(half, rows - half):
         for c in range(half, cols - half):
             if not valid[r, c]:
                 continue
-            total = 0.0
+            sx = sy = sz = sxx = syy = szz = sxy = sxz = syz = 0.0
             count = 0
+            x0, y0, z0 = xyz[r, c, 0], xyz[r, c, 1], xyz[r, c, 2]
             for rr in range(r - half, r + half + 1):
                 for cc in range(c - half, c + half + 1):
                     if not valid[rr, cc]:
                         continue
-                    d0 = xyz[rr, cc, 0] - xyz[r, c, 0]
-                    d1 = xyz[rr, cc, 1] - xyz[r, c, 1]
-                    d2 = xyz[rr, cc, 2] - xyz[r, c, 2]
-                    if d0 * d0 + d1 * d1 + d2 * d2 <= reach2:
-                        total += xyz[rr, cc, 2]
+                    dx = xyz[rr, cc, 0] - x0
+                    dy = xyz[rr, cc, 1] - y0
+                    dz = xyz[rr, cc, 2] - z0
+                    if dx * dx + dy * dy + dz * dz <= reach2:
+                        sx += dx
+                        sy += dy
+                        sz += dz
+                        sxx += dx * dx
+                        syy += dy * dy
+                        szz += dz * dz
+                        sxy += dx * dy
+                        sxz += dx * dz
+                        syz += dy * dz
                         count += 1
+            if count < edge_coverage * full:
+                continue
+            mx, my, mz = sx / count, sy / count, sz / count
+            cov = np.array([[sxx / count - mx * mx, sxy / count - mx * my, sxz / count - mx * mz],
+                            [sxy / count - mx * my, syy / count - my * my, syz / count - my * mz],
+                            [sxz / count - mx * mz, syz / count - my * mz, szz / count - mz * mz]])
+            _, vecs = np.linalg.eigh(cov)
+            n = vecs[:, 0]
+            if n[0] * x0 + n[1] * y0 + n[2] * z0 > 0:  # towards the camera
+                n = -n
+            height = -(mx * n[0] + my * n[1] + mz * n[2])
+            out_e[r, c] = height
             if count >= min_coverage * full:
-                out[r, c] = xyz[r, c, 2] - total / count
-    return out
+                out_z[r, c] = -mz
+                out_n[r, c] = height
+    return out_z, out_n, out_e
 
 
-def nose_candidates(scan: FaceScan, config: DetectConfig = DetectConfig()) -> tuple[FaceScan, np.ndarray]:
-    """(sub-sampled scan, indices of its candidate nose tips, best first).
+def _peaks(height: np.ndarray, sep: int, count: int) -> np.ndarray:
+    """(row, col) of up to `count` local maxima of a height image over a sep × sep window, highest first."""
+    peaks = np.isfinite(height) & (height == ndimage.maximum_filter(height, sep, mode="constant", cval=-np.inf))
+    rows, cols = np.nonzero(peaks)
+    order = np.argsort(-height[rows, cols])[:count]
+    return np.stack([rows[order], cols[order]], axis=1)
+
+
+def nose_candidates(scan: FaceScan, config: DetectConfig = DetectConfig()) -> tuple[FaceScan, np.ndarray, np.ndarray]:
+    """(sub-sampled scan, indices of its candidate nose tips, whether each was found at the rim).
 
     Protrusion is measured against the surface connected to a point (window
     pixels within the window's reach in 3D), so a chin over a far-away neck
-    or a shoulder rim does not stand out.
+    or a shoulder rim does not stand out: along Z (a face towards the camera),
+    along the local surface normal (a head turned away), and along the normal
+    where the window is half empty (a nose in profile); the peaks of each,
+    `candidates` of them, in that order, less repeats.
     """
     sub, spacing = _subsample(scan, config.sample_mm)
     xyz, valid = sub.to_range_image()
     half = max(1, int(round(config.window_mm / spacing / 2)))
-    protrusion = _protrusion(np.nan_to_num(xyz), valid, half, (0.75 * config.window_mm) ** 2, config.min_coverage)
+    along_z, along_normal, at_rim = _protrusion(np.nan_to_num(xyz), valid, half, (0.75 * config.window_mm) ** 2,
+                                                config.min_coverage, config.rim_coverage)
     sep = max(3, int(round(config.separation_mm / spacing)) | 1)
-    peaks = np.isfinite(protrusion) & (protrusion == ndimage.maximum_filter(protrusion, sep, mode="constant", cval=-np.inf))
-    rows, cols = np.nonzero(peaks)
-    order = np.argsort(-protrusion[rows, cols])[: config.candidates]
-    return sub, sub.index_image()[rows[order], cols[order]]
+    found: list[tuple[int, int]] = []
+    rim: list[bool] = []
+    for height in (along_z, along_normal, at_rim):
+        for r, c in _peaks(height, sep, config.candidates):
+            if all(max(abs(r - r2), abs(c - c2)) > sep // 2 for r2, c2 in found):
+                found.append((r, c))
+                rim.append(height is at_rim)
+    index = sub.index_image()
+    return sub, np.array([index[r, c] for r, c in found], dtype=np.int64), np.array(rim, dtype=bool)
 
 
 def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detection:
@@ -122,39 +189,148 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
         raise FailureToAcquire(f"only {scan.n_points} valid points", scan.meta.path)
     if scan.grid is None:
         raise ValueError("face detection needs a range-image grid (see preprocess.gridify)")
-    sub, cands = nose_candidates(scan, config)
+    sub, cands, rim = nose_candidates(scan, config)
+    crown = crown_heights(sub, config)
+    profile = silhouette_candidates(sub, crown, config)
+    cands, rim = list(cands) + profile, list(rim) + [True] * len(profile)
+    turns = [rotation_from_euler(yaw, 0.0, 0.0) for yaw in config.start_yaws]
+    frontal = [T for T, yaw in zip(turns, config.start_yaws) if abs(yaw) <= config.frontal_yaw]
     coarse: list[ModelFit] = []
-    for i in cands:
+    for i, at_rim in zip(cands, rim):
         c = sub.points[i]
         near = sub.points[np.linalg.norm(sub.points - c, axis=1) <= config.context_mm]
         if len(near) >= 50:
             R0 = hotelling_rotation(near[np.linalg.norm(near - c, axis=1) <= 0.6 * config.context_mm])
-            coarse.append(fit_face_model(near, R0, -R0 @ c, config.coarse))
-    coarse.sort(key=lambda f: -f.inlier_fraction)
+            coarse.append(max((fit_face_model(near, T @ R0, -(T @ R0) @ c, config.coarse)
+                               for T in (turns if at_rim else frontal)), key=lambda f: f.inlier_fraction))
+    coarse.sort(key=lambda f: -f.inlier_fraction + head_penalty(f, sub, crown, config))
     if not coarse or coarse[0].inlier_fraction < config.min_coarse_inliers:
         why = "no face-like surface found" if not coarse else (
             f"no face fits: at best {coarse[0].inlier_fraction:.0%} of the points near a nose candidate fit a face")
         raise FailureToAcquire(why, scan.meta.path)
-    # the full fit decides between the best placement and a distinct one that fits almost as well
-    finalists = [coarse[0]] + [f for f in coarse[1:] if f.inlier_fraction >= coarse[0].inlier_fraction - config.tie_margin
-                               and np.linalg.norm(f.landmarks["nose_tip"] - coarse[0].landmarks["nose_tip"]) > config.separation_mm][:1]
+    # the best distinct placements get a full fit (pose, identity, expression)
+    finalists: list[ModelFit] = []
+    for f in coarse:
+        if all(np.linalg.norm(f.landmarks["nose_tip"] - g.landmarks["nose_tip"]) > config.separation_mm for g in finalists):
+            finalists.append(f)
     fits = []
-    for f in finalists:
+    for f in finalists[: config.finalists]:
         near = scan.points[np.linalg.norm(scan.points - f.landmarks["nose_tip"], axis=1) <= config.context_mm]
         fits.append(fit_face_model(near, f.R, f.t, config.model))
-    plausible = [f for f in fits if identity_rms(f, config.model) <= config.max_identity_rms]
-    if not plausible:
-        raise FailureToAcquire(f"no plausible face: the face model fits only with identity coefficients of RMS "
-                               f"{min(identity_rms(f, config.model) for f in fits):.1f} (prior N(0, 1))", scan.meta.path)
-    fit = max(plausible, key=lambda f: (f.inlier_fraction, -f.rms_mm))
-    if fit.inlier_fraction < config.min_inliers:
-        raise FailureToAcquire(f"the face model does not fit ({fit.inlier_fraction:.0%} of points)", scan.meta.path)
-    return Detection(fit.landmarks["nose_tip"], fit.R, fit.t, fit.landmarks, fit.rms_mm, fit.inlier_fraction)
+    # the best face-shaped placement wins: a nose standing out of the scanned surface (`nose_protrusion`) and a
+    # face surface the camera could have seen (`seen_share`); ranked by the rigid mean face fitting there (the
+    # coarse fit), the full model fitting with a likely identity and the seen share, less the head penalty
+    shaped = [(f, c, nose_protrusion(scan.points, f, config), seen_share(scan, f, config)) for f, c in zip(fits, finalists)]
+    shaped.sort(key=lambda x: -(x[1].inlier_fraction + placement_score(x[0], config) + x[3]
+                                - head_penalty(x[0], sub, crown, config)))
+    passing = [(f, p) for f, _, p, seen in shaped
+               if p >= config.min_protrusion_mm and seen >= config.min_seen and f.inlier_fraction >= config.min_inliers]
+    if not passing:
+        fit, _, protrusion, seen = shaped[0]
+        if fit.inlier_fraction < config.min_inliers:
+            why = f"the face model does not fit ({fit.inlier_fraction:.0%} of points)"
+        elif protrusion < config.min_protrusion_mm:
+            why = (f"no face-shaped surface: nothing protrudes at the fitted nose (tip {protrusion:.0f} mm above its "
+                   f"surroundings, a nose needs {config.min_protrusion_mm:g})")
+        else:
+            why = f"no face-shaped surface: the camera saw only {seen:.0%} of where the fitted face would be"
+        raise FailureToAcquire(why, scan.meta.path)
+    fit, protrusion = passing[0]
+    return Detection(fit.landmarks["nose_tip"], fit.R, fit.t, fit.landmarks, fit.rms_mm, fit.inlier_fraction,
+                     protrusion)
 
 
-def identity_rms(fit: ModelFit, config: ModelFitConfig) -> float:
-    """RMS of a fit's identity coefficients, in prior standard deviations (a wall or a wrong place needs > 2)."""
-    return float(np.sqrt(np.mean(fit.coefficients[: config.identity_modes] ** 2)))
+def crown_heights(sub: FaceScan, config: DetectConfig = DetectConfig()) -> np.ndarray:
+    """For each point of the sub-sampled scan, the height (Y, mm) of the highest point at most `crown_reach_mm`
+    sideways and `crown_depth_mm` nearer or farther: the top of the head above a nose, the top of the head far
+    above a chin or a shoulder; a wall well behind the person does not count. Computed on 25 mm (x, z) bins."""
+    cell = 25.0
+    x, y, z = sub.points[:, 0], sub.points[:, 1], sub.points[:, 2]
+    ix = np.floor((x - x.min()) / cell).astype(np.int64)
+    iz = np.floor((z - z.min()) / cell).astype(np.int64)
+    top = np.full((ix.max() + 1, iz.max() + 1), -np.inf)
+    np.maximum.at(top, (ix, iz), y)
+    size = (2 * int(round(config.crown_reach_mm / cell)) + 1, 2 * int(round(config.crown_depth_mm / cell)) + 1)
+    top = ndimage.maximum_filter(top, size=size, mode="constant", cval=-np.inf)
+    return top[ix, iz]
+
+
+def silhouette_candidates(sub: FaceScan, crown: np.ndarray, config: DetectConfig = DetectConfig()) -> list[int]:
+    """The leftmost and rightmost points at nose height below their crown (`crown_mm`), among the points within
+    `crown_depth_mm` of the nearest one (the person, not the wall behind): the nose tip of a head in profile,
+    which no window-based protrusion sees."""
+    depth = crown - sub.points[:, 1]
+    near = sub.points[:, 2] >= sub.points[:, 2].max() - config.crown_depth_mm
+    band = np.flatnonzero(near & (depth >= config.crown_mm[0] + 30.0) & (depth <= config.crown_mm[1] - 30.0))
+    if len(band) < 30:
+        return []
+    x = sub.points[band, 0]
+    return [int(band[np.argmin(x)]), int(band[np.argmax(x)])]
+
+
+def head_penalty(fit: ModelFit, sub: FaceScan, crown: np.ndarray, config: DetectConfig = DetectConfig()) -> float:
+    """Penalty of a placement whose nose is not where a nose sits below the top of a head (Mian et al. 2007 also
+    take faces as upright): `head_weight` per 50 mm that the crown above it is nearer than `crown_mm[0]` or
+    farther than `crown_mm[1]`. The crown is that of the sub-sampled point nearest the fitted nose tip."""
+    nose = fit.landmarks["nose_tip"]
+    i = int(np.argmin(np.linalg.norm(sub.points - nose, axis=1)))
+    height = crown[i] - nose[1]
+    lo, hi = config.crown_mm
+    return config.head_weight * max(0.0, lo - height, height - hi) / 50.0
+
+
+def seen_share(scan: FaceScan, fit: ModelFit, config: DetectConfig = DetectConfig()) -> float:
+    """Free-space check of a placement: of the fitted model's surface within `seen_radius_mm` of its nose that faces
+    the camera (scan frame, looking along −Z), the share the scan agrees with, i.e. has a point within
+    `seen_margin_mm` in depth along the line of sight, or nearer (occluding it). A face fitted to an ear or a
+    shoulder puts its nose where the camera saw nothing or saw past it. Lines of sight are taken parallel to Z
+    within `seen_radius_px` pixels (the scan's pitch), which holds near the optical axis."""
+    from scipy.spatial import cKDTree
+
+    R, t = fit.R, fit.t
+    near = np.linalg.norm(fit.vertices, axis=1) <= config.seen_radius_mm
+    v = (fit.vertices[near] - t) @ R  # frontal -> scan frame: x = Rᵀ (y − t)
+    n = fit.vertex_normals[near] @ R
+    v = v[n[:, 2] > 0.3]
+    if len(v) == 0:
+        return 0.0
+    reach = config.seen_radius_px * scan.resolution()
+    d, idx = cKDTree(scan.points[:, :2]).query(v[:, :2], k=8, distance_upper_bound=reach)
+    found = np.isfinite(d)
+    z = np.where(found, scan.points[np.minimum(idx, scan.n_points - 1), 2], -np.inf)
+    agree = (z >= v[:, 2:3] - config.seen_margin_mm).any(axis=1)
+    return float(agree.mean())
+
+
+def placement_score(fit: ModelFit, config: DetectConfig = DetectConfig()) -> float:
+    """How well a full fit explains its placement: the share of points fitting, less `identity_penalty` per prior
+    standard deviation of identity RMS beyond 1 (a chin or a shoulder fits only with an unlikely face)."""
+    identity = fit.coefficients[: config.model.identity_modes]
+    rms = float(np.sqrt(np.mean(identity**2))) if len(identity) else 0.0
+    return fit.inlier_fraction - config.identity_penalty * max(0.0, rms - 1.0)
+
+
+def nose_protrusion(points: np.ndarray, fit: ModelFit, config: DetectConfig = DetectConfig()) -> float:
+    """How far (mm) the scanned surface at the fitted nose tip stands out of the scanned surface around it: the
+    90th percentile height of the points within `tip_radius_mm` of the nose axis above the plane through the
+    points of the `ring_mm` annulus around it (least squares, normal towards the fitted face's front). A nose
+    stands out of the plane of its cheeks and brow; a wall, however the frame is tilted, does not; nor does the
+    rim of a convex body (a hand, a shoulder), whose surface falls away from the plane through what lies inside.
+    −inf without tip points or with ring points on fewer than two sides (left, right, above). Measured on the
+    scan only, so a face model bent to fit a wall does not make a nose."""
+    p = points @ fit.R.T + fit.t
+    p = p[np.linalg.norm(p, axis=1) <= config.ring_mm[1] + 20.0]
+    r = np.linalg.norm(p[:, :2], axis=1)
+    tip = p[r <= config.tip_radius_mm]
+    ring = p[(r >= config.ring_mm[0]) & (r <= config.ring_mm[1])]
+    sides = [(ring[:, 0] < -10.0).sum(), (ring[:, 0] > 10.0).sum(), (ring[:, 1] > 10.0).sum()]
+    if len(tip) == 0 or sum(n >= 5 for n in sides) < 2:
+        return float("-inf")
+    centre = ring.mean(axis=0)
+    normal = np.linalg.svd(ring - centre, full_matrices=False)[2][2]
+    if normal[2] < 0:
+        normal = -normal
+    return float(np.percentile((tip - centre) @ normal, 90))
 
 
 def crop_sphere(scan: FaceScan, center: np.ndarray, radius_mm: float = 80.0) -> FaceScan:

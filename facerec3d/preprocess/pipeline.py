@@ -3,17 +3,25 @@
     Preprocessor()(scan) -> face
 
 1. point clouds without a range-image grid are put on one (`gridify`);
-2. spikes are removed (§8.5.2);
-3. the face is detected: nose tip, fiducials and frontal pose (§8.5.1, §8.5.5);
-4. the face is cropped as a sphere around the nose tip (§8.5.1);
-5. holes inside it are filled (§8.5.3);
-6. it is turned into the frontal frame (nose tip at the origin, looking along +z);
-7. resampled on a uniform x–y grid (§8.5.6) and cropped again to the sphere;
-8. and its depth is smoothed (§8.5.4).
+2. the scan's sampling is measured: pixel pitch, depth step, noise (`sampling`); the
+   sensor-dependent thresholds below are multiples of it;
+3. spikes are removed (§8.5.2);
+4. quantised or noisy depth is smoothed in the camera frame (bilateral, scaled to the
+   measured depth step and noise; skipped on fine laser scans) (§8.5.4);
+5. the face is detected: nose tip, fiducials and frontal pose (§8.5.1, §8.5.5);
+6. the face is cropped as a sphere around the nose tip (§8.5.1);
+7. holes inside it are filled (§8.5.3);
+8. it is turned into the frontal frame (nose tip at the origin, looking along +z);
+9. resampled on a uniform x–y grid (§8.5.6) and cropped again to the sphere;
+10. and its depth is smoothed (§8.5.4).
 
 The result keeps the scan's metadata; its landmarks are the fiducials in the
-frontal frame, and `meta.extra["to_frontal"]` holds the 3×4 matrix [R | t]
-that maps input-scan coordinates x to R x + t in the frontal frame.
+frontal frame, `meta.extra["to_frontal"]` holds the 3×4 matrix [R | t]
+that maps input-scan coordinates x to R x + t in the frontal frame, and
+`meta.extra["quality"]` the scan's quality (`QUALITY_FIELDS`): how well the
+face model fits (RMS mm, share of inliers), how far the nose protrudes, how
+much of the face was seen, and the measured pitch, depth step and noise at
+the face, so a user can see why a scan is weak.
 """
 
 from __future__ import annotations
@@ -28,10 +36,11 @@ from typing import Any
 import numpy as np
 
 from facerec3d.config import from_dict, read_settings
-from facerec3d.preprocess.denoise import DenoiseConfig, denoise
+from facerec3d.preprocess.denoise import DenoiseConfig, SmoothConfig, denoise, smooth_range_image
 from facerec3d.preprocess.detect import DetectConfig, crop_sphere, detect_face
 from facerec3d.preprocess.holes import HoleConfig, fill_holes
 from facerec3d.preprocess.resample import ResampleConfig, gridify, resample
+from facerec3d.preprocess.sampling import Sampling, measure_sampling
 from facerec3d.preprocess.spikes import SpikeConfig, remove_spikes
 from facerec3d.scan import FaceScan
 
@@ -41,8 +50,10 @@ class PreprocessConfig:
     """Every preprocessing setting, by stage; defaults as documented on each stage's config."""
 
     crop_radius_mm: float = 80.0  # §8.5.1: the face is the sphere of this radius around the nose tip
+    coverage_radius_mm: float = 60.0  # quality: the share of this frontal disc around the nose tip that holds data
     gridify_mm: float = 0.7  # cell size when a point cloud has to be put on a grid
     spikes: SpikeConfig = field(default_factory=SpikeConfig)
+    smooth: SmoothConfig = field(default_factory=SmoothConfig)
     detect: DetectConfig = field(default_factory=DetectConfig)
     holes: HoleConfig = field(default_factory=HoleConfig)
     resample: ResampleConfig = field(default_factory=ResampleConfig)
@@ -76,9 +87,12 @@ class Preprocessor:
     def __call__(self, scan: FaceScan) -> FaceScan:
         cfg = self.config
         scan = self._timed("gridify", gridify, scan, cfg.gridify_mm)
-        scan = self._timed("spikes", remove_spikes, scan, cfg.spikes)
+        sampling = self._timed("measure", measure_sampling, scan)
+        scan = self._timed("spikes", remove_spikes, scan, cfg.spikes, sampling)
+        scan = self._timed("smooth", smooth_range_image, scan, *cfg.smooth.sigmas(sampling))
         found = self._timed("detect", detect_face, scan, cfg.detect)
         face = self._timed("crop", crop_sphere, scan, found.nose_tip, cfg.crop_radius_mm)
+        at_face = Sampling(face.resolution(), sampling.depth_step_mm, sampling.noise_mm)
         face = self._timed("holes", fill_holes, face, cfg.holes)
         frontal = face.transformed(found.R, found.t).replace(
             landmarks={k: found.R @ v + found.t for k, v in found.landmarks.items()}
@@ -86,8 +100,11 @@ class Preprocessor:
         out = self._timed("resample", resample, frontal, cfg.resample)
         out = out.subset(np.linalg.norm(out.points, axis=1) <= cfg.crop_radius_mm)
         out = self._timed("denoise", denoise, out, cfg.denoise)
+        quality = {"fit_rms_mm": found.fit_rms_mm, "inlier_fraction": found.inlier_fraction,
+                   "protrusion_mm": found.protrusion_mm, "coverage": face_coverage(out, cfg.coverage_radius_mm),
+                   **at_face.to_dict()}
         extra = dict(out.meta.extra, to_frontal=np.hstack([found.R, found.t[:, None]]).tolist(),
-                     fit_rms_mm=found.fit_rms_mm)
+                     quality={k: round(float(v), 4) for k, v in quality.items()})
         return out.replace(meta=out.meta.replace(extra=extra))
 
     def _timed(self, stage: str, fn, *args):
@@ -95,6 +112,22 @@ class Preprocessor:
         result = fn(*args)
         self.timings[stage] = self.timings.get(stage, 0.0) + time.perf_counter() - t0
         return result
+
+
+QUALITY_FIELDS = ("fit_rms_mm", "inlier_fraction", "protrusion_mm", "coverage", "pitch_mm", "depth_step_mm",
+                  "noise_mm")
+
+
+def face_coverage(face: FaceScan, radius_mm: float) -> float:
+    """Share of the frontal disc of `radius_mm` around the nose tip that holds data (1 = the whole face was seen)."""
+    r = np.linalg.norm(face.points[:, :2], axis=1)
+    cell = face.resolution() if face.n_points > 1 else 1.0
+    return float(min(1.0, (r <= radius_mm).sum() * cell**2 / (np.pi * radius_mm**2)))
+
+
+def scan_quality(face: FaceScan) -> dict[str, float]:
+    """The quality record of a preprocessed face (`QUALITY_FIELDS`; empty when it has none)."""
+    return dict(face.meta.extra.get("quality", {}))
 
 
 def landmarks_in_input_frame(face: FaceScan) -> dict[str, np.ndarray]:

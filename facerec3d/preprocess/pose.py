@@ -68,14 +68,19 @@ class _FitBasis:
     landmarks: dict[str, int]  # fiducial -> row in mean
 
 
-@lru_cache(maxsize=2)
 def _fit_basis(config: ModelFitConfig) -> _FitBasis:
+    return _basis(config.identity_modes, config.expression_modes, config.radius_mm)
+
+
+@lru_cache(maxsize=8)
+def _basis(identity_modes: int, expression_modes: bool, radius_mm: float) -> _FitBasis:
+    """The part of the model within `radius_mm` of the mean nose tip, with its modes (cached per choice)."""
     m = load_model()
     nose = m.mean[m.nose_tip]
-    inside = (m.region == 0) & (np.linalg.norm(m.mean - nose, axis=1) < config.radius_mm)
+    inside = (m.region == 0) & (np.linalg.norm(m.mean - nose, axis=1) < radius_mm)
     sel = np.flatnonzero(inside)
-    modes = [m.identity_basis[: config.identity_modes, sel]]
-    if config.expression_modes:
+    modes = [m.identity_basis[:identity_modes, sel]]
+    if expression_modes:
         modes.append(m.expression_basis[:, sel])
     basis = np.concatenate(modes).astype(np.float64).transpose(1, 2, 0)  # (n, 3, K)
     row = np.full(len(m.mean), -1)
@@ -108,6 +113,8 @@ class ModelFit:
     rms_mm: float  # of the inliers
     inlier_fraction: float  # share of the scan points near the nose (core radius) that fit the model
     coefficients: np.ndarray
+    vertices: np.ndarray  # (n, 3) the fitted model surface in the frontal frame (nose tip at the origin)
+    vertex_normals: np.ndarray  # (n, 3) its unit normals
 
 
 def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: ModelFitConfig = ModelFitConfig()) -> ModelFit:
@@ -158,4 +165,4 @@ def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: Mod
     dist = np.abs(np.einsum("ij,ij->i", normals[j], p[core] + nose - V[j]))
     good = dist <= config.inlier_mm
     rms = float(np.sqrt(np.mean(dist[good] ** 2))) if good.any() else float("inf")
-    return ModelFit(R, t - nose, landmarks, rms, float(good.mean()) if len(good) else 0.0, c)
+    return ModelFit(R, t - nose, landmarks, rms, float(good.mean()) if len(good) else 0.0, c, V - nose, normals)

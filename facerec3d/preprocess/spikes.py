@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from facerec3d.preprocess.sampling import Sampling
 from facerec3d.scan import FaceScan
 
 
@@ -22,7 +23,8 @@ class SpikeConfig:
     """Spike-removal settings (§8.5.2)."""
 
     window: int = 2  # half-width of the grid window in pixels (5×5)
-    distance_mm: float = 4.0  # a neighbour within this 3D distance supports a point
+    distance_mm: float = 4.0  # a neighbour within this 3D distance supports a point ...
+    scale: float = 2.0  # ... or within this many times the scan's pitch or depth step, whichever is larger
     min_support: int = 3  # fewer supporting neighbours than this makes a spike
     k: int = 8  # neighbours for scans without a grid
 
@@ -52,21 +54,31 @@ def _grid_support(index_image, points, window, dist2):  # pragma: no cover - com
     return support
 
 
-def spike_mask(scan: FaceScan, config: SpikeConfig = SpikeConfig()) -> np.ndarray:
+def support_distance(config: SpikeConfig, sampling: Sampling | None = None) -> float:
+    """The 3D distance (mm) within which a neighbour supports a point: the configured floor, or `scale` times the
+    measured pitch or depth step (a 3.5 mm Kinect pixel with 8 mm depth steps needs ~16 mm, a 0.7 mm laser
+    pixel keeps the 4 mm floor)."""
+    if sampling is None:
+        return config.distance_mm
+    return max(config.distance_mm, config.scale * max(sampling.pitch_mm, sampling.depth_step_mm))
+
+
+def spike_mask(scan: FaceScan, config: SpikeConfig = SpikeConfig(), sampling: Sampling | None = None) -> np.ndarray:
     """(N,) bool: True for the points judged to be spikes."""
     if scan.n_points == 0:
         return np.zeros(0, bool)
+    distance = support_distance(config, sampling)
     if scan.grid is not None:
-        support = _grid_support(scan.index_image(), scan.points, config.window, config.distance_mm**2)
+        support = _grid_support(scan.index_image(), scan.points, config.window, distance**2)
         return support < config.min_support
     from scipy.spatial import cKDTree
 
     k = min(config.k + 1, scan.n_points)
     d, _ = cKDTree(scan.points).query(scan.points, k=k)
-    support = (d[:, 1:] <= config.distance_mm).sum(axis=1)
+    support = (d[:, 1:] <= distance).sum(axis=1)
     return support < min(config.min_support, k - 1)
 
 
-def remove_spikes(scan: FaceScan, config: SpikeConfig = SpikeConfig()) -> FaceScan:
-    """The scan without its spikes."""
-    return scan.subset(~spike_mask(scan, config))
+def remove_spikes(scan: FaceScan, config: SpikeConfig = SpikeConfig(), sampling: Sampling | None = None) -> FaceScan:
+    """The scan without its spikes (thresholds scaled to the measured `sampling` when given)."""
+    return scan.subset(~spike_mask(scan, config, sampling))

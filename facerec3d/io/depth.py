@@ -1,0 +1,203 @@
+"""Depth frames from consumer depth cameras (Kinect, RealSense, phone depth): a 16-bit depth image and the
+camera's pinhole intrinsics.
+
+    load_scan("s000/front_1.png")                  # intrinsics.json found beside it or in a parent folder
+    read_depth_image("f.png", Intrinsics.load("cam.json"))
+
+Images: 16-bit PNG or TIFF (Pillow), or a 2-D `.npy` array, holding depth in
+`depth_unit_mm` units (1 = millimetres; a RealSense `depth_scale` of 0.001 m
+is 1 mm), `invalid` (default 0) where nothing was measured. Depth is the
+Z-depth along the optical axis, as Kinect and RealSense deliver it. Pixel
+(u, v) = (column, row) with depth d maps to
+
+    X = (u − cx) · d / fx,   Y = −(v − cy) · d / fy,   Z = −d
+
+which is FRGC's camera frame (X right, Y up, the camera looking along −Z), so a
+depth frame and the equivalent `.abs` file give the same points.
+
+`intrinsics.json` holds `fx, fy, cx, cy` (pixels) and optionally
+`depth_unit_mm` (or `depth_scale_m`, metres per unit), `invalid`, `width`,
+`height` (checked against the image when given). It is looked for beside the
+frame and in up to `INTRINSICS_SEARCH_DEPTH` parent folders, so a dataset with
+one camera needs one file at its root.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from facerec3d.errors import ScanFormatError
+from facerec3d.io.common import MAX_POINTS, grid_scan, library_errors
+from facerec3d.scan import FaceScan
+
+INTRINSICS_NAME = "intrinsics.json"
+INTRINSICS_SEARCH_DEPTH = 3  # parent folders searched for intrinsics.json, beyond the frame's own
+MAX_PIXELS = 4096 * 4096  # a depth frame larger than this is refused before decoding (no sensor delivers it)
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics of a depth camera (pixels) and its depth encoding."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    depth_unit_mm: float = 1.0  # mm per stored depth unit
+    invalid: int = 0  # stored value meaning "no measurement"
+    width: int | None = None  # image size the intrinsics belong to (checked when given)
+    height: int | None = None
+
+    @classmethod
+    def from_dict(cls, data: dict, source: str | Path = "intrinsics") -> "Intrinsics":
+        """Intrinsics from a JSON object; ScanFormatError naming `source` and the field when a value is wrong."""
+        if not isinstance(data, dict):
+            raise ScanFormatError(source, "intrinsics must be a JSON object with fx, fy, cx, cy")
+        values = {}
+        for name in ("fx", "fy", "cx", "cy"):
+            if name not in data:
+                raise ScanFormatError(source, f"intrinsics lack {name!r} (need fx, fy, cx, cy in pixels)")
+            values[name] = _number(data[name], source, name)
+        if values["fx"] <= 0 or values["fy"] <= 0:
+            raise ScanFormatError(source, "intrinsics: fx and fy must be positive")
+        if "depth_unit_mm" in data:
+            values["depth_unit_mm"] = _number(data["depth_unit_mm"], source, "depth_unit_mm")
+        elif "depth_scale_m" in data:
+            values["depth_unit_mm"] = 1000.0 * _number(data["depth_scale_m"], source, "depth_scale_m")
+        if values.get("depth_unit_mm", 1.0) <= 0:
+            raise ScanFormatError(source, "intrinsics: the depth unit must be positive")
+        if "invalid" in data:
+            v = _number(data["invalid"], source, "invalid")
+            if v != int(v):
+                raise ScanFormatError(source, "intrinsics: 'invalid' must be an integer")
+            values["invalid"] = int(v)
+        for name in ("width", "height"):
+            if data.get(name) is not None:
+                v = _number(data[name], source, name)
+                if v != int(v) or v <= 0:
+                    raise ScanFormatError(source, f"intrinsics: {name!r} must be a positive integer")
+                values[name] = int(v)
+        return cls(**values)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Intrinsics":
+        """Intrinsics from a JSON file; ScanFormatError naming the file and the reason."""
+        try:
+            text = Path(path).read_text()
+        except (OSError, UnicodeDecodeError) as e:
+            raise ScanFormatError(path, f"cannot read intrinsics ({type(e).__name__})") from None
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ScanFormatError(path, f"intrinsics are not valid JSON (line {e.lineno}: {e.msg})") from None
+        return cls.from_dict(data, path)
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps({k: v for k, v in asdict(self).items() if v is not None}, indent=1))
+
+    def pixel_pitch_mm(self, depth_mm: float) -> float:
+        """Size of one pixel on a surface `depth_mm` away, facing the camera (mm)."""
+        return depth_mm / math.sqrt(self.fx * self.fy)
+
+
+def _number(value, source, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ScanFormatError(source, f"intrinsics: {name!r} must be a finite number, not {value!r}"[:200])
+    return float(value)
+
+
+def find_intrinsics(frame: str | Path) -> Path | None:
+    """The `intrinsics.json` beside a frame or in one of its parent folders (nearest first), or None."""
+    folder = Path(frame).resolve().parent
+    for _ in range(INTRINSICS_SEARCH_DEPTH + 1):
+        candidate = folder / INTRINSICS_NAME
+        if candidate.is_file():
+            return candidate
+        if folder.parent == folder:
+            break
+        folder = folder.parent
+    return None
+
+
+def depth_to_scan(depth_mm: np.ndarray, intrinsics: Intrinsics, path: str | Path = "depth", **fields) -> FaceScan:
+    """A grid scan from an (H, W) Z-depth image in mm (NaN or ≤ 0 = no measurement) and pinhole intrinsics."""
+    depth_mm = np.asarray(depth_mm, dtype=np.float64)
+    rows, cols = depth_mm.shape
+    if intrinsics.width is not None and intrinsics.width != cols or intrinsics.height is not None and intrinsics.height != rows:
+        raise ScanFormatError(path, f"image is {rows}x{cols} (rows x columns) but the intrinsics are for "
+                                    f"{intrinsics.height}x{intrinsics.width}")
+    valid = np.isfinite(depth_mm) & (depth_mm > 0)
+    d = np.where(valid, depth_mm, np.nan)
+    v, u = np.indices(depth_mm.shape, dtype=np.float64)
+    xyz = np.stack([(u - intrinsics.cx) * d / intrinsics.fx, -(v - intrinsics.cy) * d / intrinsics.fy, -d], axis=-1)
+    return grid_scan(path, xyz, valid, **fields)
+
+
+def scan_to_depth(scan: FaceScan, intrinsics: Intrinsics) -> np.ndarray:
+    """(H, W) Z-depth image in mm (NaN = none) of a grid scan in a camera frame (the inverse of depth_to_scan)."""
+    xyz, valid = scan.to_range_image()
+    return np.where(valid, -xyz[..., 2], np.nan)
+
+
+def _read_pixels(path: str | Path) -> np.ndarray:
+    """The (H, W) array of stored depth units of a PNG, TIFF or .npy file, checked before decoding."""
+    from facerec3d.io import scan_suffix
+
+    if scan_suffix(path) == ".npy":
+        with library_errors(path, "NumPy depth image"):
+            a = np.load(path, mmap_mode="r", allow_pickle=False)
+    else:
+        from PIL import Image
+
+        with library_errors(path, "depth image"):
+            with Image.open(path) as im:
+                w, h = im.size
+                if w * h > MAX_PIXELS:
+                    raise ScanFormatError(path, f"absurd size {h}x{w} for a depth frame (over {MAX_PIXELS} pixels)")
+                if im.mode not in ("I;16", "I;16B", "I;16L", "I", "L", "F"):
+                    raise ScanFormatError(path, f"not a depth image: Pillow mode {im.mode} (need 16-bit grey)")
+                a = np.asarray(im)
+    if a.ndim != 2:
+        raise ScanFormatError(path, f"a depth image must be 2-D, not of shape {a.shape}")
+    if a.size > MAX_POINTS:
+        raise ScanFormatError(path, f"absurd size {a.shape[0]}x{a.shape[1]} for a depth frame")
+    if a.dtype.kind not in "fiu":
+        raise ScanFormatError(path, f"depth of type {a.dtype} is not numeric")
+    return np.array(a)
+
+
+def read_depth_image(path: str | Path, intrinsics: Intrinsics | str | Path | None = None) -> FaceScan:
+    """A depth frame as a grid scan in the camera frame (mm). `intrinsics`: given, a JSON file, or found beside
+    the frame (`find_intrinsics`); ScanFormatError when none is found or anything is wrong."""
+    if intrinsics is None:
+        found = find_intrinsics(path)
+        if found is None:
+            raise ScanFormatError(path, f"a depth image needs pinhole intrinsics: put an {INTRINSICS_NAME} "
+                                        "(fx, fy, cx, cy in pixels) beside it or in a parent folder, or give --intrinsics")
+        intrinsics = found
+    if not isinstance(intrinsics, Intrinsics):
+        try:
+            intrinsics = Intrinsics.load(intrinsics)
+        except ScanFormatError as e:  # name the frame and the intrinsics file it was read with
+            raise ScanFormatError(path, f"{intrinsics}: {e.reason}") from None
+    units = _read_pixels(path)
+    depth = np.where(units == intrinsics.invalid, np.nan, units.astype(np.float64) * intrinsics.depth_unit_mm)
+    scan = depth_to_scan(depth, intrinsics, path)
+    extra = {"pixel_focal": math.sqrt(intrinsics.fx * intrinsics.fy), "depth_unit_mm": intrinsics.depth_unit_mm}
+    return scan.replace(meta=scan.meta.replace(extra=extra))
+
+
+def write_depth_image(path: str | Path, depth_mm: np.ndarray, intrinsics: Intrinsics) -> None:
+    """Write a Z-depth image (mm, NaN = none) as a 16-bit PNG or TIFF in the intrinsics' depth unit."""
+    from PIL import Image
+
+    depth_mm = np.asarray(depth_mm, dtype=np.float64)
+    units = np.where(np.isfinite(depth_mm), np.round(depth_mm / intrinsics.depth_unit_mm), intrinsics.invalid)
+    if (units < 0).any() or (units > 65535).any():
+        raise ValueError(f"{path}: depth does not fit 16 bits at {intrinsics.depth_unit_mm} mm per unit")
+    Image.fromarray(units.astype(np.uint16)).save(path)

@@ -1,0 +1,87 @@
+"""How a scan was sampled, measured from the scan itself: pixel pitch, depth quantisation and noise (mm).
+
+Every threshold of preprocessing and matching that depends on the sensor is
+a multiple of these measured values instead of a number fixed for one
+scanner, so the same defaults hold from a 0.3 mm laser scan to a 3.5 mm
+Kinect frame whose depth comes in 4–8 mm steps.
+
+* pitch: the median distance between a point and its nearest grid neighbour
+  (`FaceScan.resolution`), measured on the face once it is found;
+* depth step: range images of consumer cameras store depth in integer units,
+  often coarse ones (an 8-bit capture of a Kinect v2 keeps 4 or 8 mm steps).
+  Neighbouring pixels on a smooth surface then have exactly equal depth, or
+  depths one step apart: when most neighbour differences are exactly zero
+  the step is the median of the others; else the depth is continuous (0);
+* noise: for quantised depth the quantisation's σ = step/√12; else σ of depth noise from the second differences of depth along rows and
+  columns (σ = 1.4826·MAD / √6 of z[i−1] − 2 z[i] + z[i+1], which a smooth
+  surface sampled finely keeps near zero).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from facerec3d.scan import FaceScan
+
+
+@dataclass(frozen=True)
+class Sampling:
+    """Measured sampling of a scan (mm)."""
+
+    pitch_mm: float  # point spacing
+    depth_step_mm: float  # depth quantisation step, 0 when depth is continuous
+    noise_mm: float  # σ of the depth noise
+
+    @property
+    def surface_mm(self) -> float:
+        """The finest depth detail the scan can show: the larger of the quantisation step and 2σ of noise (mm)."""
+        return max(self.depth_step_mm, 2.0 * self.noise_mm)
+
+    def to_dict(self) -> dict[str, float]:
+        return {k: round(float(v), 4) for k, v in asdict(self).items()}
+
+
+def _neighbour_pairs(scan: FaceScan) -> tuple[np.ndarray, np.ndarray]:
+    """Depth (−Z) images of the scan's grid shifted by one row and one column: pairs of valid neighbours."""
+    xyz, valid = scan.to_range_image()
+    z = np.where(valid, xyz[..., 2], np.nan)
+    return z, valid
+
+
+def depth_step(scan: FaceScan, min_zero_share: float = 0.3) -> float:
+    """The depth quantisation step (mm) of a grid scan; 0 when depth is continuous (see the module docstring)."""
+    if scan.grid is None or scan.n_points < 10:
+        return 0.0
+    z, _ = _neighbour_pairs(scan)
+    d = np.concatenate([np.abs(np.diff(z, axis=0)).ravel(), np.abs(np.diff(z, axis=1)).ravel()])
+    d = d[np.isfinite(d)]
+    if len(d) < 10:
+        return 0.0
+    pitch = scan.resolution()
+    d = d[d <= 3.0 * pitch + 1e-9] if np.isfinite(pitch) else d  # same surface, not across an edge
+    zero = d <= 1e-6
+    if zero.mean() < min_zero_share or zero.all():
+        return 0.0
+    return float(np.median(d[~zero]))
+
+
+def depth_noise(scan: FaceScan) -> float:
+    """σ of depth noise (mm) from second differences along the grid's rows and columns (robust: MAD)."""
+    if scan.grid is None or scan.n_points < 10:
+        return 0.0
+    z, _ = _neighbour_pairs(scan)
+    second = np.concatenate([(z[:-2] - 2 * z[1:-1] + z[2:]).ravel(), (z[:, :-2] - 2 * z[:, 1:-1] + z[:, 2:]).ravel()])
+    second = second[np.isfinite(second)]
+    if len(second) < 10:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(second - np.median(second))) / np.sqrt(6.0))
+
+
+def measure_sampling(scan: FaceScan) -> Sampling:
+    """Pitch, depth step and noise of a grid scan (mm), measured on its own points. Quantised depth has the
+    quantisation's own noise, σ = step / √12 (what second differences see there is the steps)."""
+    step = depth_step(scan)
+    noise = step / np.sqrt(12.0) if step > 0 else depth_noise(scan)
+    return Sampling(float(scan.resolution()), step, float(noise))

@@ -1,0 +1,126 @@
+"""Acquisition: a failure to acquire only where there is no face-shaped surface, never for a face unlike the model.
+
+Depth frames are made here with the pinhole model of a Kinect v2 (fx 365 px, 3.4 mm pixels at 1.25 m, depth in
+8 mm steps) and of a laser scanner, so the tests cover a coarse consumer camera without the shared real data.
+"""
+
+import numpy as np
+import pytest
+
+from facerec3d import FailureToAcquire
+from facerec3d.datasets.synthetic import FaceScanner, IdentityConfig, ScannerConfig, ScanSpec
+from facerec3d.io.depth import Intrinsics, depth_to_scan
+from facerec3d.preprocess import Preprocessor
+from facerec3d.preprocess.detect import DetectConfig
+from facerec3d.preprocess.sampling import measure_sampling
+from facerec3d.scan import FaceScan
+
+KINECT = Intrinsics(fx=365.5, fy=365.5, cx=59.0, cy=74.0)
+
+
+def analytic_frame(surface, rows=149, cols=119, distance=1250.0, step=8.0) -> FaceScan:
+    """A Kinect-like frame of an analytic surface z = surface(x, y) (mm, height towards the camera; NaN = none)
+    `distance` away, depth quantised to `step`."""
+    v, u = np.mgrid[0:rows, 0:cols].astype(float)
+    x = (u - KINECT.cx) * distance / KINECT.fx
+    y = -(v - KINECT.cy) * distance / KINECT.fy
+    depth = distance - surface(x, y)
+    return depth_to_scan(np.round(depth / step) * step, KINECT)
+
+
+NOT_FACES = {
+    "wall": lambda x, y: np.zeros_like(x),
+    "back of a head": lambda x, y: np.sqrt(np.maximum(95.0**2 - x**2 - (y / 1.2) ** 2, 0)) - 200 * (
+        x**2 + (y / 1.2) ** 2 > 95.0**2) + 0 * x,
+}
+
+
+
+@pytest.mark.parametrize("name", sorted(NOT_FACES))
+def test_surfaces_that_are_not_faces_fail_to_acquire(name):
+    scan = analytic_frame(NOT_FACES[name])
+    with pytest.raises(FailureToAcquire):
+        Preprocessor()(scan)
+
+
+def kinect_face(subject=0, identity_sigma=1.0, yaw=0.0, distance=1250.0, step=8.0, deformation_mm=0.0):
+    """A model face seen by a Kinect-like camera (149 x 119 crop, fx 365.5) with quantised depth; ground-truth
+    nose tip in scan coordinates. `identity_sigma` is the spread of the identity coefficients (the old gate
+    refused an RMS over 2) and `deformation_mm` a smooth deformation no model mode can express."""
+    cfg = ScannerConfig(rows=149, cols=119, focal_px=365.5, distance_mm=distance, distance_jitter_mm=0.0,
+                        noise_mm=1.0, n_holes=0, spike_fraction=0.0)
+    identity = IdentityConfig(identity_sigma=identity_sigma, deformation_mm=deformation_mm)
+    out = FaceScanner(cfg, seed=0, identity=identity).scan(ScanSpec(subject, yaw=yaw))
+    xyz, valid = out.scan.to_range_image()
+    if step:
+        xyz = xyz * (np.round(-xyz[..., 2:] / step) * step / -xyz[..., 2:])  # quantise depth along the ray
+    return FaceScan.from_range_image(xyz, valid), out.landmarks["nose_tip"]
+
+
+@pytest.mark.parametrize("subject, identity_sigma, deformation_mm, yaw",
+                         [(0, 1.0, 0.0, 0.0), (1, 2.2, 0.0, 0.0), (2, 1.0, 0.0, 30.0), (3, 2.2, 4.0, -25.0),
+                          (4, 1.6, 4.0, 0.0)])
+def test_kinect_frames_of_faces_are_acquired_even_outside_the_model_span(subject, identity_sigma, deformation_mm, yaw):
+    scan, nose = kinect_face(subject, identity_sigma, yaw, deformation_mm=deformation_mm)
+    face = Preprocessor()(scan)
+    M = np.asarray(face.meta.extra["to_frontal"])
+    found = M[:, :3].T @ (face.landmarks["nose_tip"] - M[:, 3])
+    q = face.meta.extra["quality"]
+    assert np.linalg.norm(found - nose) < 3.5 * q["pitch_mm"]  # within 3.5 pixels (3.4 mm each, 8 mm depth steps)
+    assert q["depth_step_mm"] == pytest.approx(8.0)
+    assert 3.0 < q["pitch_mm"] < 4.0
+    assert q["protrusion_mm"] >= DetectConfig().min_protrusion_mm
+
+
+def test_sampling_is_measured_from_the_scan():
+    scan, _ = kinect_face(0, step=4.0)
+    s = measure_sampling(scan)
+    assert s.depth_step_mm == pytest.approx(4.0)
+    assert s.pitch_mm == pytest.approx(1250.0 / 365.5, rel=0.15)
+    fine, _ = kinect_face(0, step=0.0)
+    assert measure_sampling(fine).depth_step_mm == 0.0
+    assert measure_sampling(fine).noise_mm == pytest.approx(1.0, rel=0.35)
+
+
+def test_depth_frames_through_the_cli_record_quality_and_pose_subsets(tmp_path):
+    """Kinect-like frames as 16-bit PNGs with intrinsics.json and a manifest with a pose column: `preprocess`
+    writes each scan's measured quality to landmarks.csv, `evaluate` reports pose subsets and scan quality."""
+    import csv
+    import json
+
+    from click.testing import CliRunner
+
+    from facerec3d.cli import main
+    from facerec3d.io import write_depth_image
+    from facerec3d.io.depth import scan_to_depth
+
+    KINECT.save(tmp_path / "intrinsics.json")
+    rows = ["path,subject,pose,role"]
+    for subject in (0, 1):
+        for k, (pose, yaw) in enumerate((("front", 0.0), ("front", 4.0), ("left", 20.0))):
+            scan, _ = kinect_face(subject, yaw=yaw)
+            name = f"s{subject}_{pose}_{k}.png"
+            write_depth_image(tmp_path / name, scan_to_depth(scan, KINECT), KINECT)
+            rows.append(f"{name},s{subject},{pose},{'gallery' if k == 0 else 'probe'}")
+    (tmp_path / "manifest.csv").write_text("\n".join(rows) + "\n")
+    write_depth_image(tmp_path / "wall.png", np.full((149, 119), 1250.0), KINECT)
+
+    runner = CliRunner()
+    r = runner.invoke(main, ["preprocess", str(tmp_path / "s0_front_0.png"), "-o", str(tmp_path / "pre"), "--jobs", "1"])
+    assert r.exit_code == 0, r.output
+    with open(tmp_path / "pre" / "landmarks.csv") as f:
+        row = next(csv.DictReader(f))
+    assert row["status"] == "ok"
+    assert float(row["depth_step_mm"]) == pytest.approx(8.0) and 3.0 < float(row["pitch_mm"]) < 4.0
+    assert float(row["protrusion_mm"]) >= DetectConfig().min_protrusion_mm and float(row["coverage"]) > 0.5
+
+    r = runner.invoke(main, ["preprocess", str(tmp_path / "wall.png"), "-o", str(tmp_path / "pre2"), "--jobs", "1"])
+    assert r.exit_code == 1 and "0 kept, 1 failed" in r.output  # nothing succeeded: non-zero
+
+    r = runner.invoke(main, ["evaluate", str(tmp_path / "manifest.csv"), "--out", str(tmp_path / "run"), "--jobs", "1",
+                             "--cache", str(tmp_path / "cache")])
+    assert r.exit_code == 0, r.output
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert m["failures"] == 0 and m["failures_to_enrol"] == 0
+    assert m["subsets"]["pose:front"]["n_probes"] == 2 and m["subsets"]["pose:left"]["n_probes"] == 2
+    assert len(m["scan_quality"]) == 6 and m["quality_median"]["depth_step_mm"] == pytest.approx(8.0)

@@ -1,0 +1,138 @@
+"""Depth frames of depth cameras: 16-bit PNG / TIFF / .npy with pinhole intrinsics, read like any other scan."""
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from facerec3d import ScanFormatError
+from facerec3d.datasets.catalog import open_dataset
+from facerec3d.evaluation.protocols import split
+from facerec3d.io import Intrinsics, load_scan, save_scan, write_depth_image
+from facerec3d.io.depth import depth_to_scan, scan_to_depth
+
+KINECT = Intrinsics(fx=365.5, fy=366.0, cx=59.0, cy=74.0, depth_unit_mm=0.25)
+
+
+def frame(rows=149, cols=119, seed=0) -> np.ndarray:
+    """A Z-depth image (mm) of a sphere 1.2 m away, with missing pixels and quantised to the unit."""
+    v, u = np.mgrid[0:rows, 0:cols].astype(float)
+    r2 = (u - cols / 2) ** 2 + (v - rows / 2) ** 2
+    depth = 1200.0 - np.sqrt(np.maximum(60.0**2 - r2 * 0.5, 0.0))
+    depth[np.random.default_rng(seed).random(depth.shape) < 0.05] = np.nan
+    return np.round(depth / KINECT.depth_unit_mm) * KINECT.depth_unit_mm
+
+
+def test_depth_png_reads_to_the_same_points_as_the_equivalent_abs(tmp_path):
+    depth = frame()
+    write_depth_image(tmp_path / "f.png", depth, KINECT)
+    KINECT.save(tmp_path / "intrinsics.json")
+    png = load_scan(tmp_path / "f.png")
+    # the same frame as an FRGC range image, from the pinhole model applied independently here
+    v, u = np.indices(depth.shape, dtype=float)
+    xyz = np.stack([(u - KINECT.cx) * depth / KINECT.fx, -(v - KINECT.cy) * depth / KINECT.fy, -depth], -1)
+    from facerec3d import FaceScan
+
+    save_scan(FaceScan.from_range_image(xyz, np.isfinite(depth)), tmp_path / "f.abs")
+    ref = load_scan(tmp_path / "f.abs")
+    assert png.grid_shape == ref.grid_shape == depth.shape
+    np.testing.assert_array_equal(png.grid, ref.grid)
+    np.testing.assert_allclose(png.points, ref.points, atol=1e-3)  # .abs keeps 6 decimals
+    # a point sits where the camera saw it: back-projection gives the depth image again
+    np.testing.assert_allclose(scan_to_depth(png, KINECT), depth, equal_nan=True)
+    assert png.meta.extra["pixel_focal"] == pytest.approx(np.sqrt(365.5 * 366.0))
+
+
+@pytest.mark.parametrize("suffix", ["png", "tif", "npy"])
+def test_every_depth_container_reads_alike_and_intrinsics_are_found_in_a_parent_folder(tmp_path, suffix):
+    depth = frame(40, 30)
+    KINECT.save(tmp_path / "intrinsics.json")
+    (tmp_path / "s001").mkdir()
+    target = tmp_path / "s001" / f"front_1.{suffix}"
+    if suffix == "npy":
+        np.save(target, np.nan_to_num(depth / KINECT.depth_unit_mm).astype(np.uint16))
+    else:
+        write_depth_image(target, depth, KINECT)
+    scan = load_scan(target)
+    expected = depth_to_scan(depth, KINECT)
+    np.testing.assert_allclose(scan.points, expected.points, atol=1e-9)
+
+
+def test_intrinsics_given_explicitly_override_and_depth_scale_in_metres(tmp_path):
+    depth = frame(40, 30)
+    write_depth_image(tmp_path / "f.png", depth, KINECT)
+    cam = tmp_path / "cam.json"
+    cam.write_text(json.dumps({"fx": 365.5, "fy": 366.0, "cx": 59.0, "cy": 74.0, "depth_scale_m": 0.00025}))
+    scan = load_scan(tmp_path / "f.png", intrinsics=cam)
+    np.testing.assert_allclose(-scan.points[:, 2], depth[np.isfinite(depth)], atol=1e-9)
+
+
+def test_png_without_intrinsics_says_what_it_needs(tmp_path):
+    write_depth_image(tmp_path / "f.png", frame(20, 20), KINECT)
+    with pytest.raises(ScanFormatError, match="intrinsics"):
+        load_scan(tmp_path / "f.png")
+
+
+BAD_INTRINSICS = [
+    ("{not json", "not valid JSON"),
+    ("[1, 2]", "JSON object"),
+    ('{"fx": 365, "fy": 365, "cx": 59}', "'cy'"),
+    ('{"fx": "365", "fy": 365, "cx": 59, "cy": 74}', "'fx' must be a finite number"),
+    ('{"fx": -1, "fy": 365, "cx": 59, "cy": 74}', "positive"),
+    ('{"fx": 365, "fy": 365, "cx": 59, "cy": 74, "depth_unit_mm": 0}', "depth unit"),
+    ('{"fx": 365, "fy": 365, "cx": 59, "cy": 74, "width": 7, "height": 9}', "intrinsics are for 9x7"),
+]
+
+
+@pytest.mark.parametrize("text, reason", BAD_INTRINSICS)
+def test_bad_intrinsics_give_one_line_naming_the_file(tmp_path, text, reason):
+    write_depth_image(tmp_path / "f.png", frame(20, 20), KINECT)
+    (tmp_path / "intrinsics.json").write_text(text)
+    with pytest.raises(ScanFormatError, match=reason) as e:
+        load_scan(tmp_path / "f.png")
+    assert "\n" not in str(e.value)
+    assert "f.png" in str(e.value) or "intrinsics.json" in str(e.value)
+
+
+@pytest.mark.parametrize("make, reason", [
+    (lambda p: p.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 40), "not a readable depth image"),
+    (lambda p: p.write_bytes(b""), "not a readable depth image"),
+    (lambda p: Image.new("RGB", (8, 8)).save(p), "not a depth image"),
+    (lambda p: Image.new("I;16", (8, 8)).save(p), "no valid points"),  # all zero: nothing measured
+])
+def test_bad_depth_images_give_one_line_naming_the_file(tmp_path, make, reason):
+    KINECT.save(tmp_path / "intrinsics.json")
+    target = tmp_path / "f.png"
+    make(target)
+    with pytest.raises(ScanFormatError, match=reason) as e:
+        load_scan(target)
+    assert str(target) in str(e.value) and "\n" not in str(e.value)
+
+
+def test_huge_depth_header_is_refused_before_decoding(tmp_path):
+    """A PNG header claiming 40000 x 40000 pixels is refused from its header alone (memory stays bounded)."""
+    import struct
+    import zlib
+
+    KINECT.save(tmp_path / "intrinsics.json")
+    ihdr = struct.pack(">IIBBBBB", 40000, 40000, 16, 0, 0, 0, 0)
+    chunk = lambda kind, data: struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+    (tmp_path / "f.png").write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IEND", b""))
+    with pytest.raises(ScanFormatError, match="absurd size|not a readable"):
+        load_scan(tmp_path / "f.png")
+
+
+def test_manifest_of_depth_frames_with_a_pose_column_gives_pose_subsets(tmp_path):
+    KINECT.save(tmp_path / "intrinsics.json")
+    rows = ["path,subject,pose,role"]
+    for s in ("a", "b"):
+        for k, pose in enumerate(("front", "front", "left", "up")):
+            write_depth_image(tmp_path / f"{s}{k}.png", frame(20, 20, seed=k), KINECT)
+            rows.append(f"{s}{k}.png,{s},{pose},{'gallery' if k == 0 else 'probe'}")
+    (tmp_path / "manifest.csv").write_text("\n".join(rows) + "\n")
+    ds = open_dataset(tmp_path / "manifest.csv")
+    assert [r.pose for r in ds.records[:4]] == ["front", "front", "left", "up"]
+    sp = split(ds, "roles")
+    assert {k: len(v) for k, v in sp.subsets.items()} == {"pose:front": 2, "pose:left": 2, "pose:up": 2}
+    assert load_scan(ds.records[1].path).grid_shape == (20, 20)
