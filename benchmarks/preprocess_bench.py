@@ -29,6 +29,7 @@ from facerec3d.datasets.synthetic import (  # noqa: E402
     EXPRESSIONS, SENSOR_PROFILES, FaceScanner, ScanSpec, identity_profile, sensor_profile)
 from facerec3d.geometry.transforms import rotation_angle  # noqa: E402
 from facerec3d.preprocess import Preprocessor, landmarks_in_input_frame, spike_mask  # noqa: E402
+from facerec3d.preprocess.sampling import measure_sampling  # noqa: E402
 
 
 def main() -> None:
@@ -49,7 +50,7 @@ def main() -> None:
         occluder = identity.occluders[i % len(identity.occluders)]
         truth = scanner.scan(ScanSpec(i, expression, rng.uniform(0.5, 1.0), rng.uniform(-30, 30),
                                       rng.uniform(-20, 20), rng.uniform(-10, 10), seed=i, occluder=occluder))
-        m = spike_mask(truth.scan)
+        m = spike_mask(truth.scan, sampling=measure_sampling(truth.scan))  # as the pipeline scales it
         caught, injected = caught + (m & truth.spike).sum(), injected + truth.spike.sum()
         lost, good = lost + (m & ~truth.spike).sum(), good + (~truth.spike).sum()
         pre = Preprocessor()

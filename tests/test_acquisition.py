@@ -30,10 +30,22 @@ def analytic_frame(surface, rows=149, cols=119, distance=1250.0, step=8.0) -> Fa
 
 NOT_FACES = {
     "wall": lambda x, y: np.zeros_like(x),
+    "hand": lambda x, y: hand(x, y),
     "back of a head": lambda x, y: np.sqrt(np.maximum(95.0**2 - x**2 - (y / 1.2) ** 2, 0)) - 200 * (
         x**2 + (y / 1.2) ** 2 > 95.0**2) + 0 * x,
 }
 
+
+
+def hand(x, y):
+    """An open hand held up to the camera: a palm (a 100 x 90 mm ellipse, 12 mm thick at its centre) and four
+    fingers (18 mm wide, 9 mm thick), nothing behind it for 300 mm."""
+    palm = 12.0 * np.sqrt(np.clip(1 - (x / 50) ** 2 - ((y + 20) / 45) ** 2, 0, None))
+    height = np.where(palm > 0, palm, -300.0)
+    for cx, length in ((-33, 70), (-11, 80), (11, 78), (33, 65)):
+        finger = (np.abs(x - cx) < 9) & (y > 10) & (y < 10 + length)
+        height = np.where(finger, np.maximum(height, 9 * np.sqrt(np.clip(1 - ((x - cx) / 9) ** 2, 0, 1))), height)
+    return height
 
 
 @pytest.mark.parametrize("name", sorted(NOT_FACES))
@@ -124,3 +136,26 @@ def test_depth_frames_through_the_cli_record_quality_and_pose_subsets(tmp_path):
     assert m["failures"] == 0 and m["failures_to_enrol"] == 0
     assert m["subsets"]["pose:front"]["n_probes"] == 2 and m["subsets"]["pose:left"]["n_probes"] == 2
     assert len(m["scan_quality"]) == 6 and m["quality_median"]["depth_step_mm"] == pytest.approx(8.0)
+
+
+def test_icp_thresholds_follow_the_source_sampling_and_the_template_stays_small():
+    """A face resampled from a coarse source (3.4 mm pixels, 8 mm depth steps, recorded in its quality) gets ICP
+    thresholds in that scale, not the 1 mm grid's; its template stays as small as a fine face's few times over,
+    and noisy probes of the same faces (σ 2 mm) still find their own face."""
+    from facerec3d.gallery.synthetic import frontal_face
+    from facerec3d.matching.icp import ICPMatcher, matching_resolution
+
+    coarse = {"quality": {"pitch_mm": 3.4, "depth_step_mm": 8.0}}
+    faces = [frontal_face(s) for s in range(6)]
+    faces = [f.replace(meta=f.meta.replace(extra=coarse, subject=str(s))) for s, f in enumerate(faces)]
+    assert matching_resolution(faces[0]) == pytest.approx(8.0)
+    assert matching_resolution(frontal_face(0)) == pytest.approx(1.0, abs=0.05)
+    icp = ICPMatcher()
+    templates = [icp.enroll(f) for f in faces]
+    size = sum(a.nbytes for a in templates[0].arrays.values())
+    fine = sum(a.nbytes for a in icp.enroll(frontal_face(0)).arrays.values())
+    assert size < 4 * fine
+    for s in range(6):
+        probe = frontal_face(s, pose_deg=3.0, shift_mm=3.0, noise_mm=2.0, seed=10 + s)
+        scores, _ = icp.scores(probe, templates)
+        assert int(np.argmax(scores)) == s

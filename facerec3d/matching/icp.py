@@ -3,7 +3,8 @@
 Gallery side, built once per face at enrolment and kept in its template (`GalleryIndex`):
   * the voxel nearest-neighbour lookup: for every centre of a `voxel_size` mm
     voxel within `margin` of the face (margin = the initial distance
-    threshold plus half a voxel diagonal) the index of its nearest gallery
+    threshold, at most `max_reach_mm` or the final threshold, plus half a
+    voxel diagonal; pairs farther than it are dropped) the index of its nearest gallery
     point, so a closest-point query is one array read. Only the z-run of
     such voxels is kept in each x–y column. The stored point is the nearest
     to the voxel centre, so it may miss the query's true closest point by up
@@ -77,6 +78,8 @@ class ICPConfig:
     drop_boundary: bool = True  # reject pairs on gallery boundary points (§8.6.1)
     max_color_difference: float | None = None  # RGB distance (0–255); None = off; needs colours on both (§8.6.1)
     min_overlap: float = 0.1  # final pairs fewer than this share of the fine probe points: no match (MSE = inf)
+    max_reach_mm: float = 30.0  # mm, enrolment: the voxel lookup reaches at most this far (or the final threshold),
+    #                            so a coarse source (large res) does not blow up the template; faces arrive pre-aligned
     voxel_size: float = 2.0  # mm, enrolment: voxel lookup cell and x–y bucket (§8.6.1); ~0.4 MB per template
     normal_neighbours: int = 16  # k of the PCA normals (§8.6.1; geometry.normals)
     sensor_scale: float = 1.0  # res = max(point spacing, this × the source scan's pitch or depth step, whichever is
@@ -146,7 +149,8 @@ class GalleryIndex(NamedTuple):
         if len(pts) < 3:
             raise ValueError("a gallery face needs at least 3 points")
         h = float(config.voxel_size)
-        margin = config.distance_start * resolution + 0.5 * math.sqrt(3.0) * h
+        reach = min(config.distance_start * resolution, max(config.max_reach_mm, config.distance_end * resolution))
+        margin = reach + 0.5 * math.sqrt(3.0) * h
         origin = pts.min(axis=0) - margin
         nx, ny, nz = (np.ceil((pts.max(axis=0) + margin - origin) / h).astype(np.int64) + 1).tolist()
         column = (np.floor((pts[:, 0] - origin[0]) / h).astype(np.int64) * ny

@@ -1,19 +1,25 @@
 """Face detection and segmentation (chapter §8.5.1): find the nose tip, crop a sphere around it.
 
 The nose tip is not taken as the point of largest Z (spikes, hair, chin and
-shoulders can be nearer than the nose). Candidates are the points that
-protrude most from their surroundings on a ~2 mm sub-sampled range image
-(local maxima of height above a 40 mm local mean, with the window well
-covered by data, so that the rims of the scan do not count). Each candidate
-is verified by a rigid fit of the morphable model's mean face around it; the
-candidate where most points fit wins, and a full fit of the model (pose,
-identity, expression; `pose.fit_face_model`) gives the nose tip, the other
-fiducials and the frontal pose. The model's identity prior regularises that
-fit; it does not decide whether there is a face, since real faces lie well
-outside any model's span. A failure to acquire is a scan with no face-shaped
-surface: too few points, nothing the mean face fits, too few points near the
-nose fitting the model, or no nose standing out of the scanned surface in
-the fitted frame (a wall, the back of a head, a hand).
+shoulders can be nearer than the nose). Candidates (`nose_candidates`,
+`silhouette_candidates`) are the points that protrude most from their
+surroundings on a ~2 mm sub-sampled range image, along Z and along the local
+surface normal, those standing out at the rim of the data, and the head's
+leftmost and rightmost points at nose height (a head in profile). Each is
+verified by a rigid fit of the morphable model's mean face from a Hotelling
+frame turned by a few yaws; the best distinct placements get a full fit of
+the model (pose, identity, expression; `pose.fit_face_model`), which gives
+the nose tip, the other fiducials and the frontal pose. The model's identity
+prior regularises that fit and ranks placements; it does not decide whether
+there is a face, since real faces lie well outside any model's span.
+
+A placement counts only if the scan shows a face there: a nose standing out
+of the plane of the surface around it (`nose_protrusion`) and a face surface
+the camera could have seen (`seen_share`: a face fitted to an ear or a
+shoulder puts its nose where the camera saw nothing, or saw past it). The
+upright-head prior of Mian et al. (2007) breaks ties: a nose lies 30–190 mm
+below the top of the head (`head_penalty`). A failure to acquire is a scan
+with no such placement: nothing scanned, a wall, the back of a head, a hand.
 """
 
 from __future__ import annotations
