@@ -9,7 +9,7 @@ import pytest
 
 from facerec3d import FailureToAcquire
 from facerec3d.datasets.synthetic import FaceScanner, IdentityConfig, ScannerConfig, ScanSpec
-from facerec3d.io.depth import Intrinsics, depth_to_scan
+from facerec3d.io.depth import Intrinsics, frame_to_scan
 from facerec3d.preprocess import Preprocessor
 from facerec3d.preprocess.detect import DetectConfig
 from facerec3d.preprocess.sampling import measure_sampling
@@ -25,7 +25,7 @@ def analytic_frame(surface, rows=149, cols=119, distance=1250.0, step=8.0) -> Fa
     x = (u - KINECT.cx) * distance / KINECT.fx
     y = -(v - KINECT.cy) * distance / KINECT.fy
     depth = distance - surface(x, y)
-    return depth_to_scan(np.round(depth / step) * step, KINECT)
+    return frame_to_scan(np.round(depth / step) * step, KINECT)
 
 
 NOT_FACES = {
@@ -104,7 +104,7 @@ def test_depth_frames_through_the_cli_record_quality_and_pose_subsets(tmp_path):
 
     from facerec3d.cli import main
     from facerec3d.io import write_depth_image
-    from facerec3d.io.depth import scan_to_depth
+    from facerec3d.io.depth import scan_to_frame
 
     KINECT.save(tmp_path / "intrinsics.json")
     rows = ["path,subject,pose,role"]
@@ -112,7 +112,7 @@ def test_depth_frames_through_the_cli_record_quality_and_pose_subsets(tmp_path):
         for k, (pose, yaw) in enumerate((("front", 0.0), ("front", 4.0), ("left", 20.0))):
             scan, _ = kinect_face(subject, yaw=yaw)
             name = f"s{subject}_{pose}_{k}.png"
-            write_depth_image(tmp_path / name, scan_to_depth(scan, KINECT), KINECT)
+            write_depth_image(tmp_path / name, scan_to_frame(scan, KINECT), KINECT)
             rows.append(f"{name},s{subject},{pose},{'gallery' if k == 0 else 'probe'}")
     (tmp_path / "manifest.csv").write_text("\n".join(rows) + "\n")
     write_depth_image(tmp_path / "wall.png", np.full((149, 119), 1250.0), KINECT)

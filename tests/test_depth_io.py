@@ -10,7 +10,7 @@ from facerec3d import ScanFormatError
 from facerec3d.datasets.catalog import open_dataset
 from facerec3d.evaluation.protocols import split
 from facerec3d.io import Intrinsics, load_scan, save_scan, write_depth_image
-from facerec3d.io.depth import depth_to_scan, scan_to_depth
+from facerec3d.io.depth import frame_to_scan, scan_to_frame
 
 KINECT = Intrinsics(fx=365.5, fy=366.0, cx=59.0, cy=74.0, depth_unit_mm=0.25)
 
@@ -40,7 +40,7 @@ def test_depth_png_reads_to_the_same_points_as_the_equivalent_abs(tmp_path):
     np.testing.assert_array_equal(png.grid, ref.grid)
     np.testing.assert_allclose(png.points, ref.points, atol=1e-3)  # .abs keeps 6 decimals
     # a point sits where the camera saw it: back-projection gives the depth image again
-    np.testing.assert_allclose(scan_to_depth(png, KINECT), depth, equal_nan=True)
+    np.testing.assert_allclose(scan_to_frame(png, KINECT), depth, equal_nan=True)
     assert png.meta.extra["pixel_focal"] == pytest.approx(np.sqrt(365.5 * 366.0))
 
 
@@ -55,7 +55,7 @@ def test_every_depth_container_reads_alike_and_intrinsics_are_found_in_a_parent_
     else:
         write_depth_image(target, depth, KINECT)
     scan = load_scan(target)
-    expected = depth_to_scan(depth, KINECT)
+    expected = frame_to_scan(depth, KINECT)
     np.testing.assert_allclose(scan.points, expected.points, atol=1e-9)
 
 

@@ -124,7 +124,7 @@ def find_intrinsics(frame: str | Path) -> Path | None:
     return None
 
 
-def depth_to_scan(depth_mm: np.ndarray, intrinsics: Intrinsics, path: str | Path = "depth", **fields) -> FaceScan:
+def frame_to_scan(depth_mm: np.ndarray, intrinsics: Intrinsics, path: str | Path = "depth", **fields) -> FaceScan:
     """A grid scan from an (H, W) Z-depth image in mm (NaN or ≤ 0 = no measurement) and pinhole intrinsics."""
     depth_mm = np.asarray(depth_mm, dtype=np.float64)
     rows, cols = depth_mm.shape
@@ -138,8 +138,8 @@ def depth_to_scan(depth_mm: np.ndarray, intrinsics: Intrinsics, path: str | Path
     return grid_scan(path, xyz, valid, **fields)
 
 
-def scan_to_depth(scan: FaceScan, intrinsics: Intrinsics) -> np.ndarray:
-    """(H, W) Z-depth image in mm (NaN = none) of a grid scan in a camera frame (the inverse of depth_to_scan)."""
+def scan_to_frame(scan: FaceScan, intrinsics: Intrinsics) -> np.ndarray:
+    """(H, W) Z-depth image in mm (NaN = none) of a grid scan in a camera frame (the inverse of frame_to_scan)."""
     xyz, valid = scan.to_range_image()
     return np.where(valid, -xyz[..., 2], np.nan)
 
@@ -187,7 +187,7 @@ def read_depth_image(path: str | Path, intrinsics: Intrinsics | str | Path | Non
             raise ScanFormatError(path, f"{intrinsics}: {e.reason}") from None
     units = _read_pixels(path)
     depth = np.where(units == intrinsics.invalid, np.nan, units.astype(np.float64) * intrinsics.depth_unit_mm)
-    scan = depth_to_scan(depth, intrinsics, path)
+    scan = frame_to_scan(depth, intrinsics, path)
     extra = {"pixel_focal": math.sqrt(intrinsics.fx * intrinsics.fy), "depth_unit_mm": intrinsics.depth_unit_mm}
     return scan.replace(meta=scan.meta.replace(extra=extra))
 
