@@ -38,7 +38,7 @@ class SmoothConfig:
     max_px: float = 3.0
     edge_factor: float = 3.0  # σ in depth of the bilateral weight: this many times the smoothing scale (mm)
 
-    def sigmas(self, sampling: "Sampling") -> tuple[float, float]:
+    def sigmas(self, sampling: Sampling) -> tuple[float, float]:
         """(σ in pixels, σ in mm of depth) for a scan's sampling; σ_px = 0 means no smoothing."""
         sigma_mm = self.scale * sampling.surface_mm
         sigma_px = min(sigma_mm / sampling.pitch_mm, self.max_px) if sampling.pitch_mm > 0 else 0.0

@@ -43,23 +43,23 @@ class Sampling:
         return {k: round(float(v), 4) for k, v in asdict(self).items()}
 
 
-def _neighbour_pairs(scan: FaceScan) -> tuple[np.ndarray, np.ndarray]:
-    """Depth (−Z) images of the scan's grid shifted by one row and one column: pairs of valid neighbours."""
+def _z_image(scan: FaceScan) -> np.ndarray:
+    """The Z image of the scan's grid, NaN where no point is."""
     xyz, valid = scan.to_range_image()
-    z = np.where(valid, xyz[..., 2], np.nan)
-    return z, valid
+    return np.where(valid, xyz[..., 2], np.nan)
 
 
-def depth_step(scan: FaceScan, min_zero_share: float = 0.3) -> float:
-    """The depth quantisation step (mm) of a grid scan; 0 when depth is continuous (see the module docstring)."""
+def depth_step(scan: FaceScan, min_zero_share: float = 0.3, pitch: float | None = None) -> float:
+    """The depth quantisation step (mm) of a grid scan; 0 when depth is continuous (see the module docstring).
+    `pitch`: the scan's resolution when already known."""
     if scan.grid is None or scan.n_points < 10:
         return 0.0
-    z, _ = _neighbour_pairs(scan)
+    z = _z_image(scan)
     d = np.concatenate([np.abs(np.diff(z, axis=0)).ravel(), np.abs(np.diff(z, axis=1)).ravel()])
     d = d[np.isfinite(d)]
     if len(d) < 10:
         return 0.0
-    pitch = scan.resolution()
+    pitch = scan.resolution() if pitch is None else pitch
     d = d[d <= 3.0 * pitch + 1e-9] if np.isfinite(pitch) else d  # same surface, not across an edge
     zero = d <= 1e-6
     if zero.mean() < min_zero_share or zero.all():
@@ -71,7 +71,7 @@ def depth_noise(scan: FaceScan) -> float:
     """σ of depth noise (mm) from second differences along the grid's rows and columns (robust: MAD)."""
     if scan.grid is None or scan.n_points < 10:
         return 0.0
-    z, _ = _neighbour_pairs(scan)
+    z = _z_image(scan)
     second = np.concatenate([(z[:-2] - 2 * z[1:-1] + z[2:]).ravel(), (z[:, :-2] - 2 * z[:, 1:-1] + z[:, 2:]).ravel()])
     second = second[np.isfinite(second)]
     if len(second) < 10:
@@ -82,6 +82,7 @@ def depth_noise(scan: FaceScan) -> float:
 def measure_sampling(scan: FaceScan) -> Sampling:
     """Pitch, depth step and noise of a grid scan (mm), measured on its own points. Quantised depth has the
     quantisation's own noise, σ = step / √12 (what second differences see there is the steps)."""
-    step = depth_step(scan)
+    pitch = float(scan.resolution())
+    step = depth_step(scan, pitch=pitch)
     noise = step / np.sqrt(12.0) if step > 0 else depth_noise(scan)
-    return Sampling(float(scan.resolution()), step, float(noise))
+    return Sampling(pitch, step, float(noise))
