@@ -4,7 +4,7 @@ versus the cascade, on 1 and 2 processes; the 1 → 2 process speed-up; the proj
     python benchmarks/gallery_bench.py [--quick] [--sizes 100,466,1000,10000] [--distinct 200] [--probes 2]
 
 What it does, exactly:
-* Faces are synthetic identities made directly in preprocessed form (`facerec3d.gallery.synthetic`:
+* Faces are synthetic identities made directly in preprocessed form (`facerec3d.datasets.frontal`:
   ICT-FaceKit identities rasterised on the 1 mm frontal grid, ~14k points) — no range scanning or
   preprocessing, which would cost ~0.4 s per face. `--distinct` of them are enrolled (timed, 2 processes).
 * A gallery of N faces holds the distinct templates and, beyond them, repeats them in turn (entry i is
@@ -38,7 +38,7 @@ import numpy as np
 
 from facerec3d.gallery.cascade import CascadeConfig
 from facerec3d.gallery.engine import Engine
-from facerec3d.gallery.synthetic import frontal_face
+from facerec3d.datasets.frontal import frontal_face
 from facerec3d.matching.base import rank
 from facerec3d.matching.icp import ICPMatcher
 
@@ -170,9 +170,9 @@ def main() -> None:
                     cpu[size, jobs, mode] = _cpu_seconds(engine) - c0
                     rank1 = hit = ""  # accuracy only over galleries of distinct faces (copies fill a shortlist)
                     if size <= args.distinct:
-                        rank1 = f"{np.mean([rank(r[0], r[1])[0] == t for t, r in zip(truth, rows)]):.2f}"
+                        rank1 = f"{np.mean([rank(r.scores, r.tiebreak)[0] == t for t, r in zip(truth, rows)]):.2f}"
                         if mode == "cascade":
-                            hit = f"{np.mean([t in r[2] for t, r in zip(truth, rows)]):.2f}"
+                            hit = f"{np.mean([t in r.shortlist for t, r in zip(truth, rows)]):.2f}"
                             recall[size] = float(hit)
                     print(f"{size:>8} {jobs:>5} {mode:>10} {s:>14.3f} {s + prepare[jobs]:>9.3f} {rank1:>7} {hit:>13}",
                           flush=True)

@@ -29,30 +29,18 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from facerec3d.datasets.model import load_model  # noqa: E402
+from facerec3d.datasets.frontal import CROP_MM, face_mesh, on_preprocessing_grid  # noqa: E402
 from facerec3d.geometry.transforms import rotation_between, rotation_from_euler  # noqa: E402
 from facerec3d.matching import ICPConfig, ICPMatcher, Template  # noqa: E402
-from facerec3d.preprocess.resample import ResampleConfig, depth_to_scan, rasterize_depth  # noqa: E402
 from facerec3d.scan import FaceScan, ScanMeta  # noqa: E402
 
-CROP_MM = 80.0
 NOISE_MM = 0.3
 
 
-def face_vertices(subject: int) -> np.ndarray:
-    """Vertices (mm) of a random model identity, nose tip at the origin."""
-    model = load_model()
-    v = model.shape(np.random.default_rng(subject).standard_normal(100))
-    return v - v[model.nose_tip]
-
-
-def resampled_face(vertices: np.ndarray, R: np.ndarray, t: np.ndarray, noise: float, rng: np.random.Generator,
-                   subject: int) -> FaceScan:
-    """The face moved by x -> R x + t, on the 1 mm preprocessing grid, cropped, with depth noise."""
-    model = load_model()
-    tris = model.triangles[(model.region[model.triangles] == 0).all(axis=1)]
-    scan = depth_to_scan(rasterize_depth(vertices @ R.T + t, tris), ResampleConfig())
-    scan = scan.subset(np.linalg.norm(scan.points, axis=1) <= CROP_MM)
+def resampled_face(subject: int, R: np.ndarray, t: np.ndarray, noise: float, rng: np.random.Generator) -> FaceScan:
+    """Identity `subject` moved by x -> R x + t, on the 1 mm preprocessing grid, cropped, with depth noise."""
+    vertices, tris = face_mesh(subject)
+    scan = on_preprocessing_grid(vertices @ R.T + t, tris)
     points = scan.points.copy()
     points[:, 2] += rng.normal(0.0, noise, len(points))
     return scan.replace(points=points, meta=ScanMeta(subject=str(subject)))
@@ -60,11 +48,10 @@ def resampled_face(vertices: np.ndarray, R: np.ndarray, t: np.ndarray, noise: fl
 
 def probe_pair(subject: int, rng: np.random.Generator) -> tuple[FaceScan, FaceScan, np.ndarray, np.ndarray]:
     """(gallery, probe, R, t): the true probe-to-gallery motion x -> R x + t."""
-    v = face_vertices(subject)
-    gallery = resampled_face(v, np.eye(3), np.zeros(3), 0.0, rng, subject)
+    gallery = resampled_face(subject, np.eye(3), np.zeros(3), 0.0, rng)
     Rp = rotation_from_euler(*rng.uniform(-3.0, 3.0, 3))
     tp = rng.uniform(-3.0, 3.0, 3)
-    probe = resampled_face(v, Rp, tp, NOISE_MM, rng, subject)
+    probe = resampled_face(subject, Rp, tp, NOISE_MM, rng)
     return gallery, probe, Rp.T, -Rp.T @ tp
 
 
@@ -156,7 +143,7 @@ def main() -> None:
     print(f"\nidentification: enrolling {n_gallery} identities ...", flush=True)
     matcher = ICPMatcher(config)
     t0 = time.perf_counter()
-    gallery: list[Template] = [matcher.enroll(resampled_face(face_vertices(s), np.eye(3), np.zeros(3), 0.0, rng, s))
+    gallery: list[Template] = [matcher.enroll(resampled_face(s, np.eye(3), np.zeros(3), 0.0, rng))
                                for s in range(n_gallery)]
     enrol_s = time.perf_counter() - t0
     size = sum(t.nbytes for t in gallery)

@@ -26,12 +26,12 @@ from threadpoolctl import threadpool_limits
 from facerec3d.config import read_settings
 from facerec3d.datasets.catalog import open_dataset
 from facerec3d.datasets.synthetic import DatasetConfig, write_dataset
+from facerec3d.datasets.protocols import split
 from facerec3d.evaluation.compare import compare_runs
-from facerec3d.evaluation.protocols import split
-from facerec3d.evaluation.run import DEFAULT_CACHE, evaluate, trained_matcher
-from facerec3d.matching.registry import make_matcher
+from facerec3d.evaluation.run import evaluate
+from facerec3d.matching.registry import make_matcher, trained_matcher
 from facerec3d.preprocess import PreprocessConfig
-from facerec3d.preprocess.batch import preprocess_files
+from facerec3d.preprocess.batch import DEFAULT_CACHE, preprocess_files
 
 DEFAULT_METHODS = ("icp,pca,lda,curvature,region-icp,region-icp=examples/region-committee.toml,keypoints,"
                    "fusion=examples/fusion-icp-region.toml")
@@ -61,7 +61,7 @@ def comparison_cost(method: str, options: dict | None, model: Path | None, data:
     dataset = open_dataset(data)
     sp = split(dataset)
     paths = [dataset.records[i].path for i in list(sp.gallery) + list(sp.probes[:n_probes])]
-    faces = [o.face for o in preprocess_files(paths, PreprocessConfig(), 1, cache) if o.face is not None]
+    faces = [o.face for o in preprocess_files(paths, PreprocessConfig(), cache=cache) if o.face is not None]
     gallery = [matcher.enroll(f) for f in faces[:len(sp.gallery)]]
     probes = [matcher.prepare(f) for f in faces[len(sp.gallery):]]
     with threadpool_limits(1):

@@ -1,6 +1,6 @@
 """Preprocessing benchmark (chapter §8.5): accuracy against ground truth and time per scan.
 
-    python benchmarks/preprocess_bench.py [--scans 60] [--sensor frgc|kinect-v2|kinect-v2-8bit|realsense]
+    python benchmarks/preprocess_bench.py [--scans 60] [--subjects N] [--sensor frgc|kinect-v2|kinect-v2-8bit|realsense]
                                           [--identities model|outside-model]
 
 `--sensor` picks the synthetic scanner's sensor profile (default frgc: 480×640
@@ -35,6 +35,8 @@ from facerec3d.preprocess.sampling import measure_sampling  # noqa: E402
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scans", type=int, default=60)
+    ap.add_argument("--subjects", type=int, default=None,
+                    help="scan i shows subject i mod SUBJECTS (default: every scan its own subject)")
     ap.add_argument("--sensor", default="frgc", choices=sorted(SENSOR_PROFILES))
     ap.add_argument("--identities", default="model", choices=["model", "outside-model"])
     args = ap.parse_args()
@@ -48,7 +50,7 @@ def main() -> None:
     for i in range(args.scans):
         expression = "neutral" if i % 3 == 0 else EXPRESSIONS[i % len(EXPRESSIONS)]
         occluder = identity.occluders[i % len(identity.occluders)]
-        truth = scanner.scan(ScanSpec(i, expression, rng.uniform(0.5, 1.0), rng.uniform(-30, 30),
+        truth = scanner.scan(ScanSpec(i % (args.subjects or args.scans), expression, rng.uniform(0.5, 1.0), rng.uniform(-30, 30),
                                       rng.uniform(-20, 20), rng.uniform(-10, 10), seed=i, occluder=occluder))
         m = spike_mask(truth.scan, sampling=measure_sampling(truth.scan))  # as the pipeline scales it
         caught, injected = caught + (m & truth.spike).sum(), injected + truth.spike.sum()

@@ -5,7 +5,6 @@ from __future__ import annotations
 import csv
 import functools
 import os
-import sqlite3
 import sys
 from pathlib import Path
 
@@ -15,13 +14,14 @@ from facerec3d.errors import FaceRec3DError
 
 
 def friendly(fn):
-    """Turn facerec3d's errors (and a few user errors) into one line and exit code 2, not a traceback."""
+    """Turn facerec3d's own errors (bad input, settings, stores; and the file system's, which name the file) into
+    one line and exit code 2. Anything else is a bug, and shows its traceback."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
             return fn(*args, **kwargs)
-        except (FaceRec3DError, OSError, ValueError, sqlite3.Error) as e:
+        except (FaceRec3DError, OSError) as e:
             click.echo(f"error: {e}", err=True)
             sys.exit(2)
 
@@ -129,7 +129,8 @@ def view(file, output, with_face):
     scan = gridify(load_scan(file))
     panels = [(f"{Path(file).name} (raw)", scan)]
     if with_face:
-        face = Preprocessor()(scan)
+        with _one_blas_thread():
+            face = Preprocessor()(scan)
         panels[0] = (panels[0][0], scan.replace(landmarks=landmarks_in_input_frame(face)))
         panels.append(("preprocessed (frontal, 1 mm grid)", face))
     render(panels, output)
@@ -150,10 +151,11 @@ LANDMARK_COLUMNS = ("nose_tip", "nose_bridge", "left_eye_inner", "right_eye_inne
               help="Depth frames: pinhole intrinsics JSON (fx, fy, cx, cy); default: an intrinsics.json beside them.")
 @friendly
 def preprocess(inputs, outdir, config_file, fmt, jobs, intrinsics):
-    """Preprocess scans INPUTS into normalised faces in OUT, with OUT/landmarks.csv (chapter §8.5)."""
+    """Preprocess scans INPUTS into normalised faces in OUT, with OUT/landmarks.csv (chapter §8.5); inputs of the
+    same name get distinct outputs (face, face-2, ...). Exit code 1 when no scan could be used."""
     from tqdm import tqdm
 
-    from facerec3d.io import save_scan, scan_stem
+    from facerec3d.io import save_scan, unique_stems
     from facerec3d.preprocess import PreprocessConfig, landmarks_in_input_frame
     from facerec3d.preprocess.batch import preprocess_files
     from facerec3d.preprocess.pipeline import QUALITY_FIELDS, scan_quality
@@ -167,15 +169,15 @@ def preprocess(inputs, outdir, config_file, fmt, jobs, intrinsics):
     with open(out / "landmarks.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(header)
-        bar = tqdm(preprocess_files(inputs, config, jobs, intrinsics=intrinsics), total=len(inputs), unit="scan",
+        bar = tqdm(preprocess_files(inputs, config, jobs=jobs, intrinsics=intrinsics), total=len(inputs), unit="scan",
                    desc="preprocessing")
-        for outcome in bar:
+        for stem, outcome in zip(unique_stems(inputs), bar):
             if outcome.face is None:
                 failed += 1
                 tqdm.write(f"{outcome.path}: failed: {outcome.error}")
                 w.writerow([outcome.path, outcome.error, ""] + [""] * (len(header) - 3))
                 continue
-            target = out / f"{scan_stem(outcome.path)}.{fmt}"
+            target = out / f"{stem}.{fmt}"
             save_scan(outcome.face, target)
             lm = landmarks_in_input_frame(outcome.face)
             coords = [f"{lm[n][k]:.3f}" if n in lm else "" for n in LANDMARK_COLUMNS for k in range(3)]
@@ -196,7 +198,7 @@ def _engine_options(fn):
 
 
 def _cascade_options(fn, screens: bool = False):
-    fn = click.option("--shortlist", default=20, show_default=True,
+    fn = click.option("--shortlist", default=20, show_default=True, type=click.IntRange(min=1),
                       help="With --cascade: faces passed from the screen to full ICP.")(fn)
     if screens:
         fn = click.option("--screen", type=click.Choice(["depth", "keypoints"]), default="depth", show_default=True,
@@ -211,21 +213,130 @@ def _cascade_config(cascade: bool, shortlist: int, screen: str = "depth"):
     return CascadeConfig(shortlist=shortlist, screen=screen) if cascade else None
 
 
-def _print_metrics(m: dict) -> None:
-    from facerec3d.evaluation.report import format_value
+def _one_blas_thread():
+    """One BLAS/OpenMP thread while a single probe is preprocessed and matched, as the batch path's workers have
+    (on a busy machine, a thread per core makes one probe many times slower)."""
+    from threadpoolctl import threadpool_limits
 
-    keys = ("rank1", "rank5", "eer", "vr_at_far_0.001", "vr_at_far_0.01")
-    click.echo(f"{'probes':<14}{'n':>6}{'FTA':>6}" + "".join(f"{k:>17}" for k in keys))
-    rows = [("all", m)] + list(m.get("subsets", {}).items())
-    for name, r in rows:
-        click.echo(f"{name:<14}{r['n_probes']:>6}{r['failures']:>6}" + "".join(f"{format_value(k, r.get(k)):>17}" for k in keys))
+    return threadpool_limits(1)
+
+
+def _server_options(fn):
+    """--server and --api-key: the same command against a gallery service (facerec3d serve)."""
+    fn = click.option("--api-key", envvar="FACEREC3D_API_KEY", show_envvar=True,
+                      help="With --server: the API key (better from the environment than the command line).")(fn)
+    return click.option("--server", metavar="URL", help="Use the gallery service at URL (facerec3d serve) instead "
+                        "of a local gallery store.")(fn)
+
+
+def _edge_option(fn):
+    """--preprocess-locally: with --server, preprocess here and upload the face (the service skips that step)."""
+    return click.option("--preprocess-locally", is_flag=True,
+                        help="With --server: preprocess each scan here, with the service's settings, and upload the "
+                             "face, which the service matches without preprocessing it again.")(fn)
+
+
+def _edge(server, preprocess_locally):
+    """The cap on BLAS threads while scans are preprocessed here (--preprocess-locally), else nothing."""
+    from contextlib import nullcontext
+
+    return _one_blas_thread() if server and preprocess_locally else nullcontext()
+
+
+def _local_only(server, gallery, *names):
+    """With --server: refuse --gallery and the local-only options NAMES that were given; else --gallery is needed."""
+    from click.core import ParameterSource
+
+    ctx = click.get_current_context()
+    if not server:
+        if ctx.params.get("preprocess_locally"):
+            raise click.UsageError("--preprocess-locally works with --server only (locally, scans are always "
+                                   "preprocessed here).")
+        if not gallery:
+            raise click.UsageError("Missing option '--gallery' (or --server URL).")
+        return
+    opts = {p.name: p.opts[0] for p in ctx.command.params}
+    given = [opts[n] for n in ("gallery", *names) if ctx.get_parameter_source(n) not in (None, ParameterSource.DEFAULT)]
+    if given:
+        raise click.UsageError(f"{', '.join(given)} cannot be used with --server (the service's gallery has its own "
+                               "store and settings).")
+
+
+def _client(server, api_key):
+    from facerec3d.client import Client
+
+    return Client(server, api_key)
+
+
+def _enroll_remote(server, api_key, records, jobs, preprocess_locally=False):
+    """Upload scans to a service's enrol endpoint (`jobs` at once) and report as the local enrolment does; with
+    `preprocess_locally`, preprocessed here first (a scan without a face fails here, unrecorded by the service)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from tqdm import tqdm
+
+    from facerec3d.client import ServiceError
+    from facerec3d.errors import FaceRec3DError
+
+    def one(record):
+        try:
+            client.enrol(record.path, record.subject, record.scan_id, preprocess_locally=preprocess_locally)
+            return "enrolled"
+        except ServiceError as e:
+            if e.status == 409:
+                return "skipped"
+            if e.status in (413, 415, 422):
+                return e.reason.removeprefix("failure to enrol: ").removeprefix(f"{Path(record.path).name}: ")
+            raise
+        except FaceRec3DError as e:  # preprocessing here: unreadable, or no face found
+            return f"{getattr(e, 'reason', e)} (preprocessed locally)"
+
+    counts = {"enrolled": 0, "skipped": 0, "failed": 0}
+    with _client(server, api_key) as client, ThreadPoolExecutor(max(1, min(jobs, 8))) as pool, \
+            tqdm(total=len(records), unit="scan", desc="enrolling") as bar:
+        if preprocess_locally:
+            client.preprocessor()  # the service's settings, or stop here when this facerec3d cannot reproduce them
+        for record, status in zip(records, pool.map(one, records)):
+            bar.update()
+            if status in counts:
+                counts[status] += 1
+            else:
+                counts["failed"] += 1
+                tqdm.write(f"{record.path}: failed to enrol: {status}")
+        total = client.stats()["entries"]
+    click.echo(f"{counts['enrolled']} enrolled, {counts['skipped']} already enrolled, {counts['failed']} failed "
+               f"to enrol; {server}: {total} entries")
+
+
+def _print_metrics(m: dict) -> None:
+    """The console table: per probe set and comparison mask, figures with their 95 % intervals; then counts,
+    thresholds, timings and failures."""
+    from facerec3d.evaluation.report import format_value, set_table
+
+    columns, rows = set_table(m)
+    widths = [max(len(str(x)) for x in col) for col in zip(columns, *rows)]
+    for row in (columns, *rows):
+        click.echo("  ".join(f"{c:<{w}}" if k == 0 else f"{c:>{w}}" for k, (c, w) in enumerate(zip(row, widths))))
+    click.echo("(value (95% interval), subject-level bootstrap)" if m.get("ci95") else "")
+    click.echo("thresholds (score >= t accepts): " + ", ".join(
+        f"{name} {format_value('', m.get(key))}" for name, key in
+        (("EER", "threshold_at_eer"), ("FMR 0.1%", "threshold_at_far_0.001"), ("FMR 1%", "threshold_at_far_0.01"))))
     t = m.get("timings", {})
-    click.echo(f"gallery {m['n_gallery']}, failures to enrol {m.get('failures_to_enrol', 0)}; "
-               f"preprocess {t.get('preprocess_s', 0):.1f} s, enrol {t.get('enrol_s', 0):.1f} s, "
-               f"match {t.get('match_s', 0):.1f} s ({t.get('prepare_ms', 0):.1f} ms to prepare a probe, "
-               f"{t.get('match_ms', 0):.4g} ms per comparison)")
+    if t:
+        click.echo(f"gallery {m['n_gallery']}, failures to enrol {m.get('failures_to_enrol', 0)}; "
+                   f"preprocess {t.get('preprocess_s', 0):.1f} s ({t.get('preprocess_computed', 0)} computed, "
+                   f"{t.get('preprocess_cached', 0)} cached), enrol {t.get('enrol_s', 0):.1f} s, "
+                   f"match {t.get('match_s', 0):.1f} s (first use {t.get('match_first_s', 0):.1f} s; steady state "
+                   f"{t.get('prepare_ms', 0):.1f} ms to prepare a probe, {t.get('match_ms', 0):.4g} ms per comparison)")
     for f in m.get("failed_scans", []):
         click.echo(f"failed ({f['role']}): {f['path']}: {f['reason']}")
+
+
+def _bootstrap_options(fn):
+    """--bootstrap and --seed: the 95 % intervals of every figure."""
+    fn = click.option("--seed", default=0, show_default=True, help="Seed of the bootstrap draws.")(fn)
+    return click.option("--bootstrap", default=1000, show_default=True,
+                        help="Bootstrap replicates (resampling probe subjects) for the 95% intervals; 0: none.")(fn)
 
 
 @main.command()
@@ -239,35 +350,38 @@ def _print_metrics(m: dict) -> None:
 @click.option("--model", type=click.Path(exists=True, dir_okay=False),
               help="Saved model (a run's model.npz) instead of --method/--train.")
 @click.option("--out", "out", required=True, type=click.Path(file_okay=False), help="Run folder to write.")
-@click.option("--protocol", type=click.Choice(["frgc", "bosphorus", "roles", "all-vs-all"]),
-              help="Default: from the dataset (Bosphorus folder, manifest roles, else FRGC).")
+@click.option("--protocol", type=click.Choice(["frgc", "frgc-exp3", "bosphorus", "roles", "all-vs-all"]),
+              help="Default: from the dataset (Bosphorus folder, manifest roles, else FRGC). frgc-exp3: FRGC v2 "
+                   "Experiment 3, all against all over Fall 2003 + Spring 2004, under the ROC I / II / III masks.")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False), help="TOML or JSON preprocessing settings.")
 @click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
 @click.option("--intrinsics", type=click.Path(exists=True, dir_okay=False), default=None,
               help="Depth frames: pinhole intrinsics JSON (fx, fy, cx, cy); default: an intrinsics.json beside them.")
 @functools.partial(_cascade_options, screens=True)
+@_bootstrap_options
 @_engine_options
 @friendly
 def evaluate(data, method, method_config, train, model, out, protocol, config_file, cache, intrinsics, cascade,
-             shortlist, screen, jobs, scheduler):
+             shortlist, screen, bootstrap, seed, jobs, scheduler):
     """Evaluate a method on DATA (FRGC or Bosphorus folder, or manifest CSV): metrics, scores, plots, report."""
     from facerec3d.config import read_settings
-    from facerec3d.evaluation.run import DEFAULT_CACHE, evaluate as run
+    from facerec3d.evaluation.run import evaluate as run
     from facerec3d.preprocess import PreprocessConfig
+    from facerec3d.preprocess.batch import DEFAULT_CACHE
 
     config = PreprocessConfig.load(config_file) if config_file else PreprocessConfig()
     options = read_settings(method_config) if method_config else None
-    m = run(data, method, out, protocol, jobs, cache or DEFAULT_CACHE, config, options=options, train=train,
-            model=model, scheduler=scheduler, cascade=_cascade_config(cascade, shortlist, screen),
-            intrinsics=intrinsics)
+    m = run(data, method, out, protocol=protocol, jobs=jobs, scheduler=scheduler, cache=cache or DEFAULT_CACHE,
+            config=config, options=options, train=train, model=model,
+            cascade=_cascade_config(cascade, shortlist, screen), intrinsics=intrinsics, bootstrap=bootstrap, seed=seed)
     _print_metrics(m)
     click.echo(f"report: {Path(out) / 'report.html'}")
 
 
 @main.command()
 @click.argument("data", nargs=-1, required=True, type=click.Path(exists=True))
-@click.option("--gallery", "gallery", required=True, type=click.Path(dir_okay=False),
-              help="Gallery store (SQLite file; made if missing).")
+@click.option("--gallery", "gallery", type=click.Path(dir_okay=False),
+              help="Gallery store (SQLite file; made if missing); or --server.")
 @click.option("--method", default="icp", show_default=True, help="Matching method (as for evaluate).")
 @click.option("--method-config", type=click.Path(exists=True, dir_okay=False), help="TOML or JSON method settings.")
 @click.option("--train", type=click.Path(exists=True), help="Training dataset for learnt methods (pca, lda).")
@@ -277,59 +391,84 @@ def evaluate(data, method, method_config, train, model, out, protocol, config_fi
 @click.option("--gallery-only", is_flag=True, help="Of a dataset, enrol only its protocol's gallery scans.")
 @click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
 @_engine_options
+@_server_options
+@_edge_option
 @friendly
 def enroll(data, gallery, method, method_config, train, model, config_file, subject, gallery_only, cache, jobs,
-           scheduler):
+           scheduler, server, api_key, preprocess_locally):
     """Enrol scans DATA (files, dataset folders or manifests) into the gallery store, one transaction each;
-    scans that fail are recorded (failures to enrol) and the batch goes on."""
+    scans that fail are recorded (failures to enrol) and the batch goes on; exit code 1 when every scan failed.
+    With --server, upload them to a gallery service (--jobs at once)."""
+    _local_only(server, gallery, "method", "method_config", "train", "model", "config_file", "cache", "scheduler")
+    if server:
+        from facerec3d.gallery.service import scan_records
+
+        with _edge(server, preprocess_locally):
+            return _enroll_remote(server, api_key, scan_records(data, subject, gallery_only), jobs, preprocess_locally)
     from tqdm import tqdm
 
     from facerec3d.config import read_settings
-    from facerec3d.evaluation.run import DEFAULT_CACHE, trained_matcher
     from facerec3d.gallery.engine import Engine
     from facerec3d.gallery.service import enroll_scans, scan_records
     from facerec3d.gallery.store import GalleryStore
+    from facerec3d.matching.registry import trained_matcher
     from facerec3d.preprocess import PreprocessConfig
+    from facerec3d.preprocess.batch import DEFAULT_CACHE
 
     config = PreprocessConfig.load(config_file) if config_file else PreprocessConfig()
     options = read_settings(method_config) if method_config else None
-    matcher, _ = trained_matcher(method, options, train, model, jobs, cache or DEFAULT_CACHE, config)
+    cache = cache or DEFAULT_CACHE
     records = scan_records(data, subject, gallery_only)
-    with GalleryStore(gallery, create=True) as store, Engine.create(jobs, scheduler) as engine, \
-            tqdm(total=len(records), unit="scan", desc="enrolling") as bar:
-        def show(source, status):
-            bar.update()
-            if status not in ("enrolled", "skipped"):
-                tqdm.write(f"{source}: failed to enrol: {status}")
+    with Engine.create(jobs, scheduler) as engine:
+        matcher, _ = trained_matcher(method, options, train=train, model=model, workers=engine, cache=cache,
+                                     config=config)
+        with GalleryStore(gallery, create=True) as store, tqdm(total=len(records), unit="scan", desc="enrolling") as bar:
+            def show(source, status):
+                bar.update()
+                if status not in ("enrolled", "skipped"):
+                    tqdm.write(f"{source}: failed to enrol: {status}")
 
-        report = enroll_scans(store, records, matcher, config, engine, cache or DEFAULT_CACHE, show)
-        total = store.stats()["entries"]
+            report = enroll_scans(store, records, matcher, config=config, engine=engine, cache=cache, on_result=show)
+            total = store.stats()["entries"]
     click.echo(f"{report.enrolled} enrolled, {len(report.skipped)} already enrolled, {len(report.failures)} failed "
                f"to enrol; {gallery}: {total} entries")
+    if report.failures and not report.enrolled and not report.skipped:
+        sys.exit(1)  # nothing succeeded
 
 
 @main.command()
 @click.argument("probe", type=click.Path(exists=True, dir_okay=False))
-@click.option("--gallery", "gallery", required=True, type=click.Path(dir_okay=False), help="Gallery store.")
+@click.option("--gallery", "gallery", type=click.Path(dir_okay=False), help="Gallery store (or --server).")
 @click.option("-k", "k", default=5, show_default=True, help="Number of candidates to list.")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False),
               help="Preprocessing settings; must be the gallery's (default: the gallery's).")
 @click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
 @_cascade_options
 @_engine_options
+@_server_options
+@_edge_option
 @friendly
-def identify(probe, gallery, k, config_file, cache, cascade, shortlist, jobs, scheduler):
+def identify(probe, gallery, k, config_file, cache, cascade, shortlist, jobs, scheduler, server, api_key,
+             preprocess_locally):
     """The k gallery entries most like scan PROBE, best first (rank, subject, scan, score)."""
-    from facerec3d.evaluation.run import DEFAULT_CACHE
+    _local_only(server, gallery, "config_file", "cache", "jobs", "scheduler")
+    if server:
+        with _edge(server, preprocess_locally), _client(server, api_key) as client:
+            answer = client.identify(probe, k, cascade, shortlist, preprocess_locally=preprocess_locally)
+        click.echo(f"{'rank':>4}  {'subject':<12}{'scan':<20}{'score':>12}")
+        for c in answer["candidates"]:
+            click.echo(f"{c['rank']:>4}  {str(c['subject']):<12}{str(c['scan_id']):<20}{c['score']:>12.4f}")
+        return
     from facerec3d.gallery.engine import Engine
     from facerec3d.gallery.service import identify_scan
     from facerec3d.gallery.store import GalleryStore
     from facerec3d.preprocess import PreprocessConfig
+    from facerec3d.preprocess.batch import DEFAULT_CACHE
 
     config = PreprocessConfig.load(config_file) if config_file else None
-    with GalleryStore(gallery) as store, Engine.create(jobs, scheduler) as engine:
-        hits = identify_scan(store, probe, k, _cascade_config(cascade, shortlist), config, engine=engine,
-                             cache=cache or DEFAULT_CACHE)
+    with _one_blas_thread(), GalleryStore(gallery) as store, Engine.create(jobs, scheduler) as engine:
+        hits = identify_scan(store, probe, k=k, cascade=_cascade_config(cascade, shortlist), config=config,
+                             engine=engine, cache=cache or DEFAULT_CACHE)
     click.echo(f"{'rank':>4}  {'subject':<12}{'scan':<20}{'score':>12}")
     for r, (entry, score) in enumerate(hits, start=1):
         click.echo(f"{r:>4}  {str(entry.subject):<12}{str(entry.scan_id):<20}{score:>12.4f}")
@@ -337,34 +476,67 @@ def identify(probe, gallery, k, config_file, cache, cascade, shortlist, jobs, sc
 
 @main.command()
 @click.argument("probe", type=click.Path(exists=True, dir_okay=False))
-@click.option("--gallery", "gallery", required=True, type=click.Path(dir_okay=False), help="Gallery store.")
+@click.option("--gallery", "gallery", type=click.Path(dir_okay=False), help="Gallery store (or --server).")
 @click.option("--claim", required=True, help="The claimed subject ID.")
 @click.option("--threshold", type=float, help="Accept scores >= this (default for icp: -1.0 mm², the EER point "
               "of the synthetic test60 protocol).")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False),
               help="Preprocessing settings; must be the gallery's (default: the gallery's).")
 @click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
+@_server_options
+@_edge_option
 @friendly
-def verify(probe, gallery, claim, threshold, config_file, cache):
+def verify(probe, gallery, claim, threshold, config_file, cache, server, api_key, preprocess_locally):
     """Is scan PROBE the claimed subject? Prints accept/reject with the score; exit code 0 accept, 1 reject."""
-    from facerec3d.evaluation.run import DEFAULT_CACHE
+    _local_only(server, gallery, "config_file", "cache")
+    if server:
+        with _edge(server, preprocess_locally), _client(server, api_key) as client:
+            answer = client.verify(probe, claim, threshold, preprocess_locally=preprocess_locally)
+        accepted, score, threshold = answer["accepted"], answer["score"], answer["threshold"]
+        score = float("nan") if score is None else score
+        click.echo(f"{'accept' if accepted else 'reject'}: claim {claim}, score {score:.4f} (threshold {threshold:g})")
+        sys.exit(0 if accepted else 1)
     from facerec3d.gallery.service import verify_scan
     from facerec3d.gallery.store import GalleryStore
     from facerec3d.preprocess import PreprocessConfig
+    from facerec3d.preprocess.batch import DEFAULT_CACHE
 
     config = PreprocessConfig.load(config_file) if config_file else None
-    with GalleryStore(gallery) as store:
-        accepted, score, threshold = verify_scan(store, probe, claim, threshold, config, cache or DEFAULT_CACHE)
+    with _one_blas_thread(), GalleryStore(gallery) as store:
+        accepted, score, threshold = verify_scan(store, probe, claim, threshold=threshold, config=config,
+                                                 cache=cache or DEFAULT_CACHE)
     click.echo(f"{'accept' if accepted else 'reject'}: claim {claim}, score {score:.4f} (threshold {threshold:g})")
     sys.exit(0 if accepted else 1)
 
 
-@main.group()
-@click.argument("store", type=click.Path(dir_okay=False))
+class _GalleryGroup(click.Group):
+    """`gallery STORE CMD`, or `gallery --server URL CMD` without STORE."""
+
+    def parse_args(self, ctx, args):
+        args, i = list(args), 0
+        while i < len(args) and args[i].startswith("-"):  # the group's options: --server URL, --api-key KEY
+            i += 1 if "=" in args[i] or args[i] == "--help" else 2
+        if i < len(args) and args[i] in self.commands:
+            args.insert(i, "")  # no STORE
+        return super().parse_args(ctx, args)
+
+
+@main.group(cls=_GalleryGroup)
+@click.argument("store", required=False, type=click.Path(dir_okay=False))
+@_server_options
 @click.pass_context
-def gallery(ctx, store):
-    """Look after the gallery store STORE: list, remove ID, stats."""
+def gallery(ctx, store, server, api_key):
+    """Look after the gallery store STORE (or the gallery service --server URL): list, remove ID, stats."""
+    if bool(store) == bool(server):
+        raise click.UsageError("give the gallery store STORE or --server URL" + (", not both" if store else "."))
     ctx.obj = store
+    ctx.meta["facerec3d.server"] = (server, api_key)
+
+
+def _remote_gallery():
+    """A client of the service `gallery --server URL` names, or None for a local store."""
+    server, api_key = click.get_current_context().meta["facerec3d.server"]
+    return _client(server, api_key) if server else None
 
 
 @gallery.command("list")
@@ -372,6 +544,14 @@ def gallery(ctx, store):
 @friendly
 def gallery_list(store):
     """The enrolled entries (id, subject, scan, source) and the failures to enrol."""
+    if (client := _remote_gallery()) is not None:
+        with client:
+            listed = client.entries()
+        for e in listed["entries"]:
+            click.echo(f"{e['id']}\t{e['subject']}\t{e['scan_id']}\t{e['source']}")
+        for f in listed["failures"]:
+            click.echo(f"failed\t{f['source']}\t{f['reason']}")
+        return
     from facerec3d.gallery.store import GalleryStore
 
     with GalleryStore(store) as s:
@@ -387,6 +567,11 @@ def gallery_list(store):
 @friendly
 def gallery_remove(store, ident):
     """Remove subject IDENT's entries (or else the entry of scan IDENT)."""
+    if (client := _remote_gallery()) is not None:
+        with client:
+            n = len(client.remove(ident)["removed"])
+        click.echo(f"removed {n} entr{'y' if n == 1 else 'ies'}")
+        return
     from facerec3d.gallery.store import GalleryError, GalleryStore
 
     with GalleryStore(store) as s:
@@ -401,10 +586,14 @@ def gallery_remove(store, ident):
 @friendly
 def gallery_stats(store):
     """Entries, subjects, sizes, failures to enrol and the matcher."""
-    from facerec3d.gallery.store import GalleryStore
+    if (client := _remote_gallery()) is not None:
+        with client:
+            st = client.stats()
+    else:
+        from facerec3d.gallery.store import GalleryStore
 
-    with GalleryStore(store) as s:
-        st = s.stats()
+        with GalleryStore(store) as s:
+            st = s.stats()
     click.echo(f"{st['entries']} entries of {st['subjects']} subjects; "
                f"templates {st['template_bytes'] / 2**20:.1f} MiB, "
                f"file {st['file_bytes'] / 2**20:.1f} MiB; {st['failures_to_enrol']} failures to enrol; "
@@ -412,15 +601,150 @@ def gallery_stats(store):
 
 
 @main.command()
+@click.option("--gallery", "gallery", required=True, type=click.Path(dir_okay=False),
+              help="Gallery store (SQLite file; made if missing, with --method and --config).")
+@click.option("--keys", "keys_file", required=True, type=click.Path(dir_okay=False),
+              help="API key file (facerec3d keys add); re-read when it changes.")
+@click.option("--host", default="127.0.0.1", show_default=True,
+              help="Address to listen on; loopback by default (other addresses expose the service: use TLS).")
+@click.option("--port", default=8000, show_default=True)
+@_engine_options
+@click.option("--method", help="Matching method of a new gallery (default icp); an existing gallery's is checked.")
+@click.option("--method-config", type=click.Path(exists=True, dir_okay=False), help="TOML or JSON method settings.")
+@click.option("--config", "config_file", type=click.Path(dir_okay=False),
+              help="Preprocessing settings of a new gallery; an existing gallery's are checked.")
+@click.option("--concurrency", type=int, help="Requests worked on at once [default: 2 per worker].")
+@click.option("--queue", default=32, show_default=True, help="Requests that may wait beyond those; more get 503.")
+@click.option("--per-key", type=int, help="Requests one key may have queued or running; more get 429 "
+              "[default: half of concurrency + queue].")
+@click.option("--timeout", default=60.0, show_default=True, help="Time limit per request (s); past it, 504.")
+@click.option("--max-upload-mb", default=64.0, show_default=True, help="Largest upload (MiB); larger get 413.")
+@click.option("--max-points", default=5_000_000, show_default=True, help="Largest scan (points); larger get 413.")
+@click.option("--audit", type=click.Path(dir_okay=False),
+              help="Audit log, JSON lines (who enrolled or removed what, when) [default: GALLERY.audit.jsonl].")
+@click.option("--ssl-certfile", type=click.Path(exists=True, dir_okay=False), help="TLS certificate (PEM).")
+@click.option("--ssl-keyfile", type=click.Path(exists=True, dir_okay=False), help="TLS private key (PEM).")
+@friendly
+def serve(gallery, keys_file, host, port, jobs, scheduler, method, method_config, config_file, concurrency, queue,
+          per_key, timeout, max_upload_mb, max_points, audit, ssl_certfile, ssl_keyfile):
+    """Serve the gallery over HTTP: enrol, identify, verify, list and remove subjects, stats, health, metrics
+    (OpenAPI at /docs). The gallery is loaded once into the worker processes and updated in place; every
+    enrolment is committed before it is acknowledged. Needs: pip install 'facerec3d[service]'."""
+    import ipaddress
+
+    try:
+        from facerec3d.server.app import ServiceSettings, serve as run
+    except ImportError as e:
+        raise click.ClickException(f"the service needs FastAPI and uvicorn ({e}): pip install 'facerec3d[service]'")
+    from facerec3d.config import read_settings
+    from facerec3d.preprocess import PreprocessConfig
+
+    try:
+        loopback = ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = host == "localhost"
+    if not loopback and not ssl_certfile:
+        click.echo(f"warning: listening on {host} without TLS: API keys and scans cross the network in clear text",
+                   err=True)
+    workers = 1 if scheduler is None and (jobs or 1) <= 1 else (jobs or os.cpu_count() or 1)
+    settings = ServiceSettings(concurrency=concurrency or 2 * workers, queue=queue, per_key=per_key,
+                               timeout_s=timeout, max_upload_bytes=int(max_upload_mb * 2**20))
+    run(gallery, keys_file, host, port, jobs, scheduler, method,
+        read_settings(method_config) if method_config else None,
+        PreprocessConfig.load(config_file) if config_file else None, settings, max_points, audit,
+        ssl_certfile, ssl_keyfile, echo=lambda line: click.echo(line, err=True))
+
+
+@main.group()
+def keys():
+    """API keys of the gallery service (facerec3d serve --keys FILE): add, list, remove."""
+
+
+@keys.command("add")
+@click.argument("name")
+@click.option("--scopes", required=True, help="Comma-separated: enrol (add scans), query (identify, verify), "
+              "admin (list and remove subjects, metrics).")
+@click.option("--keys", "keys_file", required=True, type=click.Path(dir_okay=False), help="Key file (made if missing).")
+@friendly
+def keys_add(name, scopes, keys_file):
+    """Make a key NAME and print it, once: only its hash is stored."""
+    from facerec3d.server.keys import add_key, parse_scopes
+
+    key = add_key(keys_file, name, scopes)
+    click.echo(key)
+    click.echo(f"key {name!r} ({', '.join(parse_scopes(scopes))}) added to {keys_file}; it is shown only this once",
+               err=True)
+
+
+@keys.command("list")
+@click.option("--keys", "keys_file", required=True, type=click.Path(dir_okay=False), help="Key file.")
+@friendly
+def keys_list(keys_file):
+    """The keys' names, scopes and creation times (the keys themselves are not stored)."""
+    from facerec3d.server.keys import read_keys
+
+    for k in read_keys(keys_file):
+        click.echo(f"{k['name']}\t{','.join(k['scopes'])}\t{k.get('created', '')}")
+
+
+@keys.command("remove")
+@click.argument("name")
+@click.option("--keys", "keys_file", required=True, type=click.Path(dir_okay=False), help="Key file.")
+@friendly
+def keys_remove(name, keys_file):
+    """Revoke key NAME (a running service stops taking it at its next request)."""
+    from facerec3d.server.keys import remove_key
+
+    remove_key(keys_file, name)
+    click.echo(f"removed key {name!r}")
+
+
+@main.command()
 @click.argument("runs", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False))
 @click.option("--out", "out", default="compare", show_default=True, type=click.Path(file_okay=False))
 @friendly
 def compare(runs, out):
-    """Overlay several evaluation runs' ROC, DET and CMC curves, with one table."""
+    """Overlay several evaluation runs' ROC, DET and CMC curves, tabulate their figures with 95% intervals, and
+    test each pair's rank-1 on the same probes (McNemar)."""
     from facerec3d.evaluation.compare import compare_runs
 
-    compare_runs(list(runs), out)
+    result = compare_runs(list(runs), out)
+    for t in result["mcnemar"]:
+        verdict = "differ" if t["differ"] else "do not differ significantly"
+        click.echo(f"rank-1, McNemar on {t['n']} probes: {t['a']} and {t['b']} {verdict} (p = {t['p']:.3g}; "
+                   f"{t['a_only']} vs {t['b_only']} discordant hits)")
     click.echo(f"wrote {Path(out) / 'compare.html'}")
+
+
+@main.command()
+@click.argument("scores", type=click.Path(exists=True, dir_okay=False))
+@click.option("--format", "fmt", type=click.Choice(["bob4", "bob5", "csv"]), default="bob4", show_default=True,
+              help="bob4: claimed_id real_id probe_label score; bob5: claimed_id model_label real_id probe_label "
+                   "score; csv: bob 5's CSV (probe_subject_id, probe_template_id, bio_ref_subject_id, score, ...).")
+@click.option("--higher-is-better/--lower-is-better", default=True, show_default=True,
+              help="Scores are similarities, or distances (negated).")
+@click.option("--out", "out", required=True, type=click.Path(file_okay=False), help="Run folder to write.")
+@_bootstrap_options
+@friendly
+def metrics(scores, fmt, higher_is_better, out, bootstrap, seed):
+    """Every figure, plot and report of an evaluation from SCORES, a score file written by any system."""
+    import hashlib
+
+    from facerec3d.evaluation.provenance import provenance
+    from facerec3d.evaluation.report import write_run
+    from facerec3d.evaluation.scorefile import read_score_matrix
+
+    m = read_score_matrix(scores, fmt, higher_is_better)
+    source = Path(scores).resolve()
+    rerun = ["facerec3d", "metrics", source, "--format", fmt,
+             "--higher-is-better" if higher_is_better else "--lower-is-better", "--out", Path(out).resolve(),
+             "--bootstrap", bootstrap, "--seed", seed]
+    info = {"scores": str(source), "scores_sha256": hashlib.sha256(source.read_bytes()).hexdigest(), "format": fmt,
+            "score_direction": "higher is better" if higher_is_better else "lower is better (negated)",
+            "n_gallery": int(m.S.shape[1]), "provenance": provenance(rerun)}
+    _print_metrics(write_run(out, m.S, m.probe_ids, m.probe_labels, m.gallery_ids, info, bootstrap=bootstrap,
+                             seed=seed))
+    click.echo(f"report: {Path(out) / 'report.html'}")
 
 
 @main.command()
@@ -434,7 +758,12 @@ def compare(runs, out):
 @friendly
 def demo(subjects, scans, methods, out, jobs, seed):
     """The main job: synthesise a FRGC-style dataset (and a disjoint training set for learnt methods), evaluate
-    each method on it, print the metrics and write one comparison report."""
+    each method on it, print the metrics and write one comparison report. Data already in OUT is reused when it
+    was made with the same sizes and seed, else made again."""
+    import dataclasses
+    import json
+    import shutil
+
     from facerec3d.datasets.synthetic import DatasetConfig, write_dataset
     from facerec3d.evaluation.compare import compare_runs
     from facerec3d.evaluation.run import evaluate as run
@@ -447,12 +776,22 @@ def demo(subjects, scans, methods, out, jobs, seed):
     if learnt:
         sets["train"] = DatasetConfig(subjects=subjects, scans=scans, seed=seed + 1, first_subject=1000)
     for name, cfg in sets.items():
-        if not (out / name / "manifest.csv").is_file():
-            click.echo(f"synthesising {name}: {cfg.subjects} subjects x {cfg.scans} scans")
-            write_dataset(out / name, cfg, "abs", progress=True)
+        folder, record = out / name, out / name / "demo-dataset.json"  # record: the settings it was made with
+        wanted = json.dumps(dataclasses.asdict(cfg), sort_keys=True)
+        if (folder / "manifest.csv").is_file():
+            if record.is_file() and record.read_text(encoding="utf-8") == wanted:
+                continue
+            if not record.is_file():
+                raise FaceRec3DError(f"{folder}: holds a dataset that demo did not record making (an older version's, "
+                                     "or another); remove it or choose another --out")
+            click.echo(f"{folder} was made with other settings: synthesising it again")
+            shutil.rmtree(folder)
+        click.echo(f"synthesising {name}: {cfg.subjects} subjects x {cfg.scans} scans")
+        write_dataset(folder, cfg, "abs", progress=True)
+        record.write_text(wanted, encoding="utf-8")
     for name in names:
         click.echo(f"\n== {name}" + (f" (trained on {out / 'train'})" if name in learnt else ""))
-        m = run(out / "data", name, out / name, None, jobs, out / "cache",
+        m = run(out / "data", name, out / name, jobs=jobs, cache=out / "cache",
                 train=out / "train" if name in learnt else None)
         _print_metrics(m)
     compare_runs([out / name for name in names], out / "compare")

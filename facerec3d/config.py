@@ -1,37 +1,139 @@
-"""Settings files: TOML or JSON into the typed config dataclasses (partial, nested, unknown keys refused)."""
+"""Settings files: TOML or JSON into the typed config dataclasses (partial, nested, unknown keys refused).
+
+Every value is checked against its field's type (`float`, `int`, `bool`, `str`, `X | None`, tuples, nested
+configs) and range (`RANGES`, by field name), and the config's own checks (`__post_init__`) run; a wrong value
+raises `SettingsError` naming the file, the dotted field (`resample.resolution_mm`) and the reason, on one line.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import tomllib
+import types
+import typing
 from pathlib import Path
 from typing import Any
 
+from facerec3d.errors import SettingsError
 
-def read_settings(path: str | Path) -> dict[str, Any]:
+POSITIVE = (0.0, math.inf, False)  # (low, high, low allowed): > 0
+NON_NEGATIVE = (0.0, math.inf, True)  # >= 0
+FRACTION = (0.0, 1.0, True)  # in [0, 1]
+ANY = (-math.inf, math.inf, True)
+MAX_INT = 2**31 - 1  # counts, seeds and sizes: larger ones are mistakes (and overflow NumPy's integers)
+
+#: Range of each numeric field, by name (the same name means the same kind of quantity in every config);
+#: numbers not named here must be >= 0. Sizes, radii, steps and counts that something is divided by or
+#: sampled at must be > 0.
+RANGES: dict[str, tuple[float, float, bool]] = {
+    **dict.fromkeys((
+        # preprocessing
+        "crop_radius_mm", "coverage_radius_mm", "gridify_mm", "window", "distance_mm", "k", "sample_mm",
+        "window_mm", "separation_mm", "candidates", "context_mm", "seen_radius_mm", "seen_radius_px",
+        "tip_radius_mm", "ring_mm", "crown_mm", "crown_reach_mm", "crown_depth_mm", "finalists", "iterations",
+        "start_distance_mm", "end_distance_mm", "radius_mm", "max_points", "core_radius_mm", "inlier_mm",
+        "ring_px", "resolution_mm", "half_width_mm", "edge_factor",
+        # matching
+        "max_iterations", "coarse_points", "distance_start", "distance_end", "max_reach_mm", "voxel_size",
+        "normal_neighbours", "step_mm", "sigma_mm", "committee_radius", "radius", "nms_radius", "max_keypoints",
+        "patch_radius", "patch_bins", "max_offset", "ransac_iterations", "n_components", "pca_components"),
+        POSITIVE),
+    **dict.fromkeys(("min_coverage", "rim_coverage", "min_coarse_inliers", "min_inliers", "min_seen",
+                     "min_overlap", "variance", "pca_share"), FRACTION),
+    "start_yaws": ANY,  # degrees, either way
+}
+
+
+class Settings(dict):
+    """A settings table that remembers the file it was read from, for error messages."""
+
+    def __init__(self, data: dict, source: str | Path | None = None):
+        super().__init__(data)
+        self.source = None if source is None else str(source)
+
+
+def read_settings(path: str | Path) -> Settings:
     """A TOML (.toml) or JSON settings file as a dict; errors name the file."""
     kind = "JSON" if str(path).endswith(".json") else "TOML"
     try:
         text = Path(path).read_text(encoding="utf-8")
-        return json.loads(text) if kind == "JSON" else tomllib.loads(text)
+        data = json.loads(text) if kind == "JSON" else tomllib.loads(text)
     except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ValueError(f"{path}: not valid {kind}: {e}") from None
+        raise SettingsError(path, None, f"not valid {kind}: {e}".splitlines()[0]) from None
+    except OSError as e:
+        raise SettingsError(path, None, f"cannot read ({e.strerror or e})") from None
+    if not isinstance(data, dict):
+        raise SettingsError(path, None, f"a settings file holds a table of fields, not {type(data).__name__}")
+    return Settings(data, path)
 
 
-def from_dict(cls, data: dict[str, Any]):
-    """A dataclass from a (partial, nested) dict; lists become tuples where the default is one; unknown
-    keys raise ValueError."""
+def from_dict(cls, data: dict[str, Any], source: str | Path | None = None, prefix: str = ""):
+    """A config dataclass from a (partial, nested) dict, every value checked (module docstring). `source` is the
+    file named in errors (default: the file a `Settings` was read from); `prefix` the dotted section."""
+    source = source if source is not None else getattr(data, "source", None)
+    if not isinstance(data, dict):
+        raise SettingsError(source, prefix.rstrip(".") or None, f"must be a table of {cls.__name__} settings")
     known = {f.name for f in dataclasses.fields(cls)}
-    unknown = set(data) - known
-    if unknown:
-        raise ValueError(f"unknown {cls.__name__} settings: {', '.join(sorted(unknown))}")
-    values = {}
-    for name, value in data.items():
-        default = getattr(cls(), name)
-        if dataclasses.is_dataclass(default) and isinstance(value, dict):
-            value = from_dict(type(default), value)
-        elif isinstance(default, tuple) and isinstance(value, list):
-            value = tuple(value)
-        values[name] = value
-    return cls(**values)
+    if unknown := set(data) - known:
+        raise SettingsError(source, prefix.rstrip(".") or None,
+                            f"unknown {cls.__name__} settings: {', '.join(sorted(map(str, unknown)))}")
+    hints = typing.get_type_hints(cls)
+    values = {name: _check(hints[name], value, source, prefix + name) for name, value in data.items()}
+    try:
+        return cls(**values)
+    except SettingsError:
+        raise
+    except ValueError as e:  # the config's own checks (__post_init__)
+        raise SettingsError(source, prefix.rstrip(".") or None, str(e)) from None
+
+
+def _check(hint, value, source, name: str):
+    """`value` as a field of type `hint` (dotted name `name`) holds it; SettingsError if it cannot."""
+    def fail(reason: str):
+        raise SettingsError(source, name, f"{reason}, not {value!r}"[:200])
+
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        (hint,) = [a for a in args if a is not type(None)]
+        return _check(hint, value, source, name)
+    if dataclasses.is_dataclass(hint):
+        return from_dict(hint, value, source, name + ".")
+    if hint is Any:
+        return value
+    if hint is bool:
+        return value if isinstance(value, bool) else fail("must be true or false")
+    if hint is str:
+        return value if isinstance(value, str) else fail("must be a text")
+    if hint in (int, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or hint is int and not isinstance(value, int):
+            fail("must be an integer" if hint is int else "must be a number")
+        return _in_range(hint, value, source, name)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            fail("must be a list")
+        each = [args[0]] * len(value) if len(args) == 2 and args[1] is Ellipsis else list(args)
+        if len(each) != len(value):
+            fail(f"must be a list of {len(each)}")
+        return tuple(_check(h, v, source, name) for h, v in zip(each, value))
+    if origin is dict:
+        if not isinstance(value, dict):
+            fail("must be a table")
+        return {str(k): _check(args[1], v, source, f"{name}.{k}") for k, v in value.items()}
+    raise TypeError(f"settings of type {hint} are not checked: add them to config._check")
+
+
+def _in_range(hint: type, value: int | float, source, name: str) -> int | float:
+    """`value` as a `hint` (int or float) in the field's range (`RANGES`)."""
+    low, high, low_ok = RANGES.get(name.rsplit(".", 1)[-1], NON_NEGATIVE)
+    if isinstance(value, float) and not math.isfinite(value) or hint is float and abs(value) > 1e300:
+        raise SettingsError(source, name, f"must be a finite number, not {value!r}"[:200])
+    if value < low or value == low and not low_ok or value > high:
+        want = {POSITIVE: "> 0", NON_NEGATIVE: ">= 0", FRACTION: "in [0, 1]"}[(low, high, low_ok)]
+        raise SettingsError(source, name, f"must be {want}, not {value!r}"[:200])
+    if hint is int and value > MAX_INT:
+        raise SettingsError(source, name, f"must be at most {MAX_INT}, not {value!r}"[:200])
+    return hint(value)

@@ -11,7 +11,21 @@ from pathlib import Path
 
 
 class FaceRec3DError(Exception):
-    """Base class of every error facerec3d raises on purpose."""
+    """Base class of every error facerec3d raises on purpose.
+
+    Errors cross process boundaries (worker pools pickle them): an error is rebuilt from its message and
+    attributes, not by calling its constructor again, so subclasses may take any arguments.
+    """
+
+    def __reduce__(self):
+        return _rebuild, (type(self), self.args, self.__dict__)
+
+
+def _rebuild(cls: type, args: tuple, state: dict) -> FaceRec3DError:
+    error = cls.__new__(cls, *args)
+    error.args = args
+    error.__dict__.update(state)
+    return error
 
 
 class ScanFormatError(FaceRec3DError, ValueError):
@@ -33,3 +47,25 @@ class FailureToAcquire(FaceRec3DError):
         self.path = None if path is None else str(path)
         self.reason = reason
         super().__init__(f"{self.path}: {reason}" if self.path else reason)
+
+
+class InputError(FaceRec3DError, ValueError):
+    """Input that cannot be used as given: an option's value, a dataset, a run folder, a score file."""
+
+
+class SettingsError(FaceRec3DError, ValueError):
+    """A settings value (or file) that cannot be used: `field` is the dotted name, e.g. `resample.resolution_mm`.
+
+    The message names the file (when known), the field and the reason, on one line.
+    """
+
+    def __init__(self, path: str | Path | None, field: str | None, reason: str):
+        self.path = None if path is None else str(path)
+        self.field, self.reason = field, reason
+        where = ": ".join(x for x in (self.path, field) if x)
+        super().__init__(f"{where}: {reason}" if where else reason)
+
+    def within(self, path: str | Path | None = None, section: str | None = None) -> "SettingsError":
+        """The same error inside a file (when it names none yet) and a section (`section.field`)."""
+        field = ".".join(x for x in (section, self.field) if x) or None
+        return SettingsError(self.path if self.path is not None else path, field, self.reason)

@@ -192,27 +192,28 @@ class FaceScan:
         `max_edge` mm (default: 4 × the scan resolution), which would bridge
         a depth discontinuity.
         """
-        idx = self.index_image()
-        a, b = idx[:-1, :-1], idx[:-1, 1:]
-        c, d = idx[1:, :-1], idx[1:, 1:]
-        tris = np.concatenate(
-            [np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)]
-        )
-        tris = tris[(tris >= 0).all(axis=1)]
-        if len(tris) == 0:
-            return tris.astype(np.int64)
+        if not self.n_points:
+            return np.zeros((0, 3), np.int64)
+        (r0, c0), (r1, c1) = self.grid.min(axis=0), self.grid.max(axis=0) + 1
+        idx = self.index_image()[r0:r1, c0:c1]  # the rows and columns holding points (a cropped face is small)
         if max_edge is None:
             max_edge = 4.0 * self.resolution()
-        p = self.points
-        e = np.stack(
-            [
-                np.linalg.norm(p[tris[:, 0]] - p[tris[:, 1]], axis=1),
-                np.linalg.norm(p[tris[:, 1]] - p[tris[:, 2]], axis=1),
-                np.linalg.norm(p[tris[:, 2]] - p[tris[:, 0]], axis=1),
-            ],
-            axis=1,
-        )
-        return tris[(e <= max_edge).all(axis=1)].astype(np.int64)
+        xyz = self.points[np.maximum(idx, 0)]
+
+        def edges(i: tuple, j: tuple) -> np.ndarray:
+            """Pixels i and j (slices of the image) both valid and at most max_edge apart; memory: one image."""
+            return (idx[i] >= 0) & (idx[j] >= 0) & (np.linalg.norm(xyz[i] - xyz[j], axis=-1) <= max_edge)
+
+        every, head, tail = slice(None), slice(None, -1), slice(1, None)
+        across = edges((every, head), (every, tail))  # (r, c)–(r, c + 1)
+        down = edges((head, every), (tail, every))  # (r, c)–(r + 1, c)
+        diagonal = edges((head, tail), (tail, head))  # (r, c + 1)–(r + 1, c)
+        del xyz
+        a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+        upper = down[:, :-1] & diagonal & across[:-1]  # triangle (a, c, b) of each 2×2 block ...
+        lower = diagonal & across[1:] & down[:, 1:]  # ... and (b, c, d)
+        return np.concatenate([np.stack([a[upper], c[upper], b[upper]], axis=1),
+                               np.stack([b[lower], c[lower], d[lower]], axis=1)]).astype(np.int64, copy=False)
 
     def __repr__(self) -> str:
         who = self.meta.scan_id or self.meta.path or "scan"

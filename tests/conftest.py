@@ -1,17 +1,22 @@
-"""Shared test fixtures: small synthetic range images and scans."""
+"""Shared test helpers and fixtures: small synthetic range images and scans, model faces, the pyeer check.
+
+Test modules import the helpers from here (`from tests.conftest import model_face`), never from each other.
+Tests that take minutes are marked `slow` (run by default; `-m "not slow"` leaves them out).
+"""
 
 import numpy as np
 import pytest
 
 from facerec3d import FaceScan
+from facerec3d.datasets.frontal import frontal_face
 
 
-def cap_image(rows: int = 12, cols: int = 16, invalid=((0, 0), (5, 7), (11, 15))) -> FaceScan:
-    """A sphere cap on a small grid (mm, camera frame, Z < 0) with a few invalid pixels."""
+def cap_image(rows: int = 12, cols: int = 16, invalid=((0, 0), (5, 7), (11, 15)), seed: int = 1) -> FaceScan:
+    """A sphere cap (radius 60 mm, 1 m in front of the camera, Z < 0) on a grid of 2 mm pixels, a few invalid."""
     r, c = np.mgrid[0:rows, 0:cols].astype(float)
     x, y = (c - cols / 2) * 2.0, (rows / 2 - r) * 2.0
     z = -1000.0 + np.sqrt(np.maximum(60.0**2 - x**2 - y**2, 0.0))
-    xyz = np.stack([x, y, z], axis=-1) + np.random.default_rng(1).normal(0, 0.01, (rows, cols, 3))
+    xyz = np.stack([x, y, z], axis=-1) + np.random.default_rng(seed).normal(0, 0.01, (rows, cols, 3))
     valid = np.ones((rows, cols), bool)
     for i, j in invalid:
         valid[i, j] = False
@@ -21,3 +26,50 @@ def cap_image(rows: int = 12, cols: int = 16, invalid=((0, 0), (5, 7), (11, 15))
 @pytest.fixture
 def cap():
     return cap_image()
+
+
+def model_face(subject: int, expression: str = "neutral", noise_mm: float = 0.2) -> FaceScan:
+    """A face as preprocessing leaves it, straight from the model (datasets.frontal), with depth noise and the
+    model's true fiducials as landmarks; subject ids "s<n>"."""
+    face = frontal_face(subject, noise_mm=noise_mm, seed=len(expression), expression=expression)
+    return face.replace(meta=face.meta.replace(subject=f"s{subject}"))
+
+
+def faceless_scans() -> dict[str, FaceScan]:
+    """Range images with no face: a wall, random depths, and an empty scan."""
+    r, c = np.mgrid[0:120, 0:160].astype(float)
+    wall = np.stack([(c - 80) * 2.0, (60 - r) * 2.0, np.full(r.shape, -1500.0)], axis=-1)
+    rng = np.random.default_rng(3)
+    noise = np.stack([(c - 80) * 2.0, (60 - r) * 2.0, rng.uniform(-1500, -800, r.shape)], axis=-1)
+    empty = FaceScan(points=np.zeros((0, 3)), grid=np.zeros((0, 2)), grid_shape=(4, 4))
+    return {"wall": FaceScan.from_range_image(wall), "noise": FaceScan.from_range_image(noise), "empty": empty}
+
+
+def check_against_pyeer(path):
+    """EER and VR of a 4-column score file against pyeer's on the same scores (skips when pyeer is missing).
+
+    pyeer (Maio et al. FVC2000 convention) evaluates FMR / FNMR at every distinct score (accept score >= t, as
+    here) and reports an EER interval [eer_low, eer_high] at the threshold nearest the crossing, with their
+    midpoint as its EER; our EER is the crossing itself, so it lies inside pyeer's interval. pyeer's fmr1000 is
+    the FNMR at the point whose FMR is NEAREST 0.1 % (possibly above it); our VR at FMR 0.1 % is the best TAR
+    with FMR <= 0.1 %, i.e. 1 - the lowest FNMR over pyeer's points with FMR <= 0.001, and equals 1 - fmr1000
+    whenever pyeer's nearest point is not above 0.1 %.
+    """
+    eer_info = pytest.importorskip("pyeer.eer_info")
+    eer_stats = pytest.importorskip("pyeer.eer_stats")
+    from facerec3d.evaluation.metrics import eer, verification_rate
+    from facerec3d.evaluation.scorefile import read_scores
+
+    genuine, impostor = read_scores(path)
+    with np.errstate(invalid="ignore"):  # pyeer's score statistics (mean, std) of -inf scores
+        stats = eer_info.get_eer_stats(list(genuine), list(impostor))
+    ours = eer(genuine, impostor)
+    assert stats.eer_low - 1e-12 <= ours <= stats.eer_high + 1e-12, (ours, stats.eer_low, stats.eer_high)
+    _, fmr, fnmr = eer_stats.calculate_roc(list(genuine), list(impostor))
+    for far, nearest in ((0.001, stats.fmr1000), (0.01, stats.fmr100)):
+        vr = verification_rate(genuine, impostor, far)
+        allowed = fmr <= far
+        assert vr == pytest.approx(1 - fnmr[allowed].min() if allowed.any() else 0.0)
+        if fmr[np.argmin(np.abs(fmr - far))] <= far:
+            assert vr == pytest.approx(1 - nearest)
+    return ours, stats

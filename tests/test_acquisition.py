@@ -142,7 +142,7 @@ def test_icp_thresholds_follow_the_source_sampling_and_the_template_stays_small(
     """A face resampled from a coarse source (3.4 mm pixels, 8 mm depth steps, recorded in its quality) gets ICP
     thresholds in that scale, not the 1 mm grid's; its template stays as small as a fine face's few times over,
     and noisy probes of the same faces (σ 2 mm) still find their own face."""
-    from facerec3d.gallery.synthetic import frontal_face
+    from facerec3d.datasets.frontal import frontal_face
     from facerec3d.matching.icp import ICPMatcher, matching_resolution
 
     coarse = {"quality": {"pitch_mm": 3.4, "depth_step_mm": 8.0}}

@@ -1,3 +1,4 @@
+import pytest
 from click.testing import CliRunner
 
 from facerec3d.cli import main
@@ -27,6 +28,7 @@ def test_bad_input_is_one_line_and_exit_code_2(tmp_path):
     assert r.exit_code == 2 and "truncated header" in r.output
 
 
+@pytest.mark.slow  # a minute or more on 2 cores
 def test_demo_evaluates_each_method_and_compares_them(tmp_path):
     import json
 
@@ -43,3 +45,14 @@ def test_demo_evaluates_each_method_and_compares_them(tmp_path):
     assert icp["subsets"]["neutral"]["rank1"] == 1.0
     assert "icp (icp)" in (out / "compare" / "compare.md").read_text()
     assert "lda (lda)" in (out / "compare" / "compare.md").read_text()
+
+    # the same figures from the demo's score file alone, as from any system's; EER and VR as pyeer has them
+    from tests.conftest import check_against_pyeer
+
+    r = CliRunner().invoke(main, ["metrics", str(out / "icp" / "scores.txt"), "--out", str(tmp_path / "m")])
+    assert r.exit_code == 0, r.output
+    again = json.loads((tmp_path / "m" / "metrics.json").read_text())
+    assert icp["failures"] == 0 and "subsets" in icp
+    figures = [k for k in again if k not in ("scores", "scores_sha256", "format", "score_direction", "provenance")]
+    assert figures and {k: again[k] for k in figures} == {k: icp[k] for k in figures}
+    check_against_pyeer(out / "icp" / "scores.txt")

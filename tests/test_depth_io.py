@@ -8,7 +8,7 @@ from PIL import Image
 
 from facerec3d import ScanFormatError
 from facerec3d.datasets.catalog import open_dataset
-from facerec3d.evaluation.protocols import split
+from facerec3d.datasets.protocols import split
 from facerec3d.io import Intrinsics, load_scan, save_scan, write_depth_image
 from facerec3d.io.depth import frame_to_scan, scan_to_frame
 

@@ -1,13 +1,16 @@
 """The sharded matching engine: local processes and a Dask cluster give exactly the single-process results."""
 
+import json
+
 import numpy as np
 import pytest
 
+from facerec3d.datasets.frontal import frontal_face
 from facerec3d.gallery.cascade import CascadeConfig
 from facerec3d.gallery.engine import Engine
-from facerec3d.gallery.synthetic import frontal_face
 from facerec3d.matching.base import rank
 from facerec3d.matching.icp import ICPMatcher
+from tests.conftest import model_face
 
 N_GALLERY = 7
 
@@ -65,7 +68,7 @@ def test_one_and_two_processes_give_the_same_results(faces, reference):
 
 
 def test_dask_local_cluster_gives_the_same_results(faces, reference):
-    import distributed  # in the test extra
+    distributed = pytest.importorskip("distributed")
 
     cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None)
     with cluster, distributed.Client(cluster) as client:
@@ -75,6 +78,71 @@ def test_dask_local_cluster_gives_the_same_results(faces, reference):
         with Engine.create(scheduler=cluster.scheduler_address) as engine:  # by address, as --scheduler
             templates = engine.enroll(ICPMatcher(), faces[0][:3])
             assert [t.subject for t in templates] == ["0", "1", "2"]
+
+
+def _small_dataset(path, subjects: int = 3, seed: int = 3):
+    from facerec3d.datasets.synthetic import DatasetConfig, ScannerConfig, write_dataset
+
+    write_dataset(path, DatasetConfig(subjects=subjects, scans=2, seed=seed,
+                                      scanner=ScannerConfig(rows=240, cols=320, focal_px=725.0)), "abs")
+    return path
+
+
+def _tasks(stream, name: str) -> list[dict]:
+    """The tasks of a Dask task stream that ran function `name` (keys "name-<id>")."""
+    return [t for t in stream.data if str(t["key"]).startswith(f"{name}-")]
+
+
+def test_evaluation_on_a_dask_cluster_preprocesses_on_its_workers(tmp_path):
+    """--scheduler: reading and preprocessing run on the cluster's workers (filling the cache there), as do
+    enrolment and matching; the metrics and scores are those of the local run."""
+    distributed = pytest.importorskip("distributed")
+    from facerec3d.evaluation.run import evaluate
+
+    data = _small_dataset(tmp_path / "data")
+    local = evaluate(data, "icp", tmp_path / "local", jobs=1, cache=tmp_path / "cache-local", progress=False)
+    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None)
+    with cluster, distributed.Client(cluster) as client, distributed.get_task_stream(client) as stream:
+        remote = evaluate(data, "icp", tmp_path / "dask", scheduler=client, cache=tmp_path / "cache-dask",
+                          progress=False)
+        workers = set(client.scheduler_info()["workers"])
+    scans = remote["timings"]["preprocess_computed"]
+    assert scans == 6 and remote["timings"]["preprocess_cached"] == 0 and remote["workers"] == 2
+    ran = _tasks(stream, "preprocess_file")
+    assert len(ran) == scans and {t["worker"] for t in ran} == workers  # on both workers, each scan once
+    assert {t["worker"] for t in _tasks(stream, "_enroll")} == workers
+    assert len(list((tmp_path / "cache-dask").glob("*.npz"))) == scans  # the workers filled the cache
+    for key in ("rank1", "rank5", "eer", "vr_at_far_0.001", "vr_at_far_0.01", "subsets", "failures", "n_gallery"):
+        assert json.dumps(remote[key], sort_keys=True) == json.dumps(local[key], sort_keys=True), key
+    assert (tmp_path / "dask" / "scores.txt").read_text() == (tmp_path / "local" / "scores.txt").read_text()
+
+
+def test_enroll_and_identify_preprocess_on_the_dask_workers(tmp_path):
+    """facerec3d enroll / identify --scheduler: each scan is read, preprocessed and enrolled on a worker; the probe
+    is preprocessed on one too."""
+    distributed = pytest.importorskip("distributed")
+    from click.testing import CliRunner
+
+    from facerec3d.cli import main
+
+    from facerec3d.datasets.catalog import open_dataset
+
+    data = _small_dataset(tmp_path / "data", subjects=2, seed=5)
+    probe = open_dataset(data).records[-1]
+    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None)
+    with cluster, distributed.Client(cluster) as client:
+        address, run = cluster.scheduler_address, CliRunner()
+        with distributed.get_task_stream(client) as stream:
+            r = run.invoke(main, ["enroll", str(data), "--gallery", str(tmp_path / "g.sqlite"), "--scheduler",
+                                  address, "--cache", str(tmp_path / "cache")])
+            assert r.exit_code == 0 and "4 enrolled, 0 already enrolled, 0 failed" in r.output, r.output
+            r = run.invoke(main, ["identify", str(probe.path), "--gallery", str(tmp_path / "g.sqlite"), "-k", "1",
+                                  "--scheduler", address, "--cache", str(tmp_path / "cache-probe")])
+            assert r.exit_code == 0, r.output
+        workers = set(client.scheduler_info()["workers"])
+    assert len(_tasks(stream, "_enrol_one")) == 4 and {t["worker"] for t in _tasks(stream, "_enrol_one")} == workers
+    assert len(_tasks(stream, "preprocess_file")) == 1  # the probe, on a worker
+    assert r.output.splitlines()[1].split()[1:3] == [probe.subject, probe.scan_id]  # itself, enrolled
 
 
 def test_evaluation_is_identical_on_one_and_two_processes(tmp_path):
@@ -121,7 +189,6 @@ def test_keypoint_screen_shortlists_the_true_subject_identically_on_one_and_two_
 def test_gallery_normalised_scores_do_not_depend_on_the_sharding(method, options):
     """Region ICP and fusion normalise over the whole gallery: 2 shards must give the 1-shard scores."""
     from facerec3d.matching.registry import make_matcher
-    from tests.test_regions import model_face
 
     matcher = make_matcher(method, options)
     gallery = [model_face(s) for s in range(5)]

@@ -9,11 +9,11 @@ from click.testing import CliRunner
 from facerec3d.cli import main
 from facerec3d.datasets.catalog import open_dataset
 from facerec3d.datasets.synthetic import DatasetConfig, ScannerConfig, write_dataset
-from facerec3d.evaluation.protocols import split
+from facerec3d.datasets.protocols import split
 from facerec3d.evaluation.run import evaluate
 from facerec3d.evaluation.scorefile import read_score_rows
 from facerec3d.io import save_scan
-from tests.test_preprocess import faceless_scans
+from tests.conftest import faceless_scans
 
 SMALL = ScannerConfig(rows=320, cols=400, focal_px=1000.0)
 
@@ -48,9 +48,11 @@ def test_frgc_protocol_split(dataset):
     assert sp.protocol == "frgc" and len(sp.gallery) == 8
     assert all(ds.records[i].expression == "neutral" for i in sp.gallery)
     assert len(sp.probes) == len(ds) - 8
-    assert set(sp.subsets) == {"neutral", "non-neutral"}
+    assert set(sp.subsets) == {"neutral", "non-neutral", "pose:yaw"}  # the ±25° yaw probes are not neutral
+    assert all(ds.records[sp.probes[k]].pose == "yaw" for k in sp.subsets["pose:yaw"])
 
 
+@pytest.mark.slow  # a minute or more on 2 cores
 def test_identification_and_verification_on_neutral_probes(runs):
     _, m, _ = runs
     assert m["subsets"]["neutral"]["rank1"] == 1.0
@@ -97,6 +99,7 @@ def test_cli_evaluate_and_compare(dataset, runs, tmp_path):
     assert r.exit_code == 2
 
 
+@pytest.mark.slow  # a minute or more on 2 cores
 def test_icp_identifies_40_subjects_from_neutral_scans(tmp_path):
     """Issue 4's criterion: 40 subjects, neutral gallery, neutral probes: rank-1 100%, genuine and impostor apart."""
     data = tmp_path / "d"

@@ -5,12 +5,12 @@ import pytest
 
 from facerec3d.config import read_settings
 from facerec3d.matching.base import Template
-from facerec3d.matching.fusion import (FusionConfig, FusionMatcher, borda, fuse, hampel_location_scale, normalise,
-                                       pack, unpack)
+from facerec3d.matching.fusion import FusionConfig, FusionMatcher, pack, unpack
+from facerec3d.matching.normalisation import borda, fuse, hampel_location_scale, normalise
 from facerec3d.matching.icp import ICPMatcher
 from facerec3d.matching.registry import load_matcher, make_matcher
 from facerec3d.matching.regions import RegionICPMatcher
-from tests.test_regions import model_face
+from tests.conftest import model_face
 
 # two sources (rows) scoring three templates (columns)
 S = np.array([[1.0, 2.0, 4.0],

@@ -25,7 +25,8 @@ def big_template(i: int) -> Template:
     arrays = {"points": rng.normal(size=(300_000, 3)).astype(np.float32), "flags": rng.random(1000) < 0.5,
               "index": rng.integers(0, 60000, 5000).astype(np.uint16), "empty": np.zeros((0, 3), np.uint8),
               "scalar": np.array(float(i))}
-    return Template(f"s{i}", f"scan{i}", "icp", arrays, {"i": i, "origin": [1.5, -2.0, 0.25]})
+    # method "arrays": arbitrary arrays, not an ICP index (the store checks an "icp" template's structure)
+    return Template(f"s{i}", f"scan{i}", "arrays", arrays, {"i": i, "origin": [1.5, -2.0, 0.25]})
 
 
 def assert_same(a: Template, b: Template) -> None:

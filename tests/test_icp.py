@@ -7,27 +7,16 @@ import pytest
 from scipy.spatial import cKDTree
 
 from facerec3d import FaceScan, ScanMeta
-from facerec3d.datasets.model import load_model
+from facerec3d.datasets.frontal import CROP_MM, face_mesh, on_preprocessing_grid
 from facerec3d.geometry.normals import estimate_normals
 from facerec3d.geometry.transforms import rigid_fit, rotation_between, rotation_from_euler
+from facerec3d.geometry.transforms import rigid_from_covariance as _fit_rigid
 from facerec3d.matching import GalleryIndex, ICPConfig, ICPMatcher, ProbeData, Template, icp
-from facerec3d.matching.icp import _fit_rigid
-from facerec3d.preprocess.resample import ResampleConfig, depth_to_scan, rasterize_depth
-
-CROP_MM = 80.0
-
-
-def face_mesh(identity: int) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices mm with the nose tip at the origin, face triangles) of a random model identity."""
-    model = load_model()
-    v = model.shape(np.random.default_rng(identity).standard_normal(100))
-    return v - v[model.nose_tip], model.triangles[(model.region[model.triangles] == 0).all(axis=1)]
 
 
 def grid_scan(mesh, identity: int = 0) -> FaceScan:
     """The face as preprocessing leaves it: on the 1 mm x–y grid, cropped to 80 mm around the nose."""
-    scan = depth_to_scan(rasterize_depth(mesh[0], mesh[1]), ResampleConfig())
-    scan = scan.subset(np.linalg.norm(scan.points, axis=1) <= CROP_MM)
+    scan = on_preprocessing_grid(*mesh)
     return scan.replace(meta=ScanMeta(subject=f"s{identity}", scan_id=f"s{identity}-g"))
 
 
@@ -84,6 +73,8 @@ def test_exact_motion_recovered(cloud, wide_index, variant, angles, shift):
     rot, tra = errors(result, R, t)
     assert rot < 0.05 and tra < 0.02, (rot, tra)
     assert result.mse < 1e-6
+    # converged, within a few updates of the threshold's last shrink, far below the cap of 150
+    assert result.converged and WIDE.shrink_iterations <= result.iterations <= WIDE.shrink_iterations + 5
 
 
 @pytest.mark.parametrize("variant", ["point-to-point", "point-to-plane"])
@@ -111,7 +102,34 @@ def test_default_config_on_preprocessed_faces(mesh):
         rot, tra = errors(result, R, t)
         assert rot < max_rot and tra < max_tra, (variant, rot, tra)
         assert result.n_correspondences > 800 and result.mse < 0.6
+        assert result.iterations < ICPConfig().max_iterations  # the coarse phase converged before its cap
     assert start_rot > 3.0 and start_tra > 3.0  # the test starts away from the answer
+
+
+@pytest.mark.parametrize("variant", ["point-to-point", "point-to-plane"])
+def test_iterations_and_convergence(mesh, variant):
+    """The loop stops when the MSE settles (§8.6.1), and says so; caps stop it only when reached."""
+    gallery = GalleryIndex.from_scan(grid_scan(mesh))
+    Rp, tp = rotation_from_euler(2.5, -2.0, 1.5), np.array([2.0, -3.0, 1.5])
+    probe = grid_scan((mesh[0] @ Rp.T + tp, mesh[1])).points
+    probe[:, 2] += np.random.default_rng(0).normal(0.0, 0.3, len(probe))
+    default = ICPConfig(variant=variant)
+    result = icp(probe, gallery, default)
+    # the coarse phase converges after the threshold stops shrinking, before its cap (max − fine updates); the
+    # fine phase then ends at its cap of fine_iterations updates, not converged
+    coarse = result.iterations - default.fine_iterations
+    assert default.shrink_iterations <= coarse < default.max_iterations - default.fine_iterations
+    assert not result.converged
+    if variant == "point-to-plane":  # converges as soon as the threshold stops shrinking
+        assert coarse == default.shrink_iterations
+    # with room in the fine phase it converges there, before every cap
+    roomy = ICPConfig(variant=variant, fine_iterations=10, max_iterations=60, tolerance=1e-6)
+    result = icp(probe, gallery, roomy)
+    assert result.converged and result.iterations < roomy.max_iterations
+    # caps: exactly max_iterations updates, not converged; none at all with a cap of 0
+    for cap, fine in ((5, 2), (0, 0)):
+        result = icp(probe, gallery, ICPConfig(variant=variant, max_iterations=cap, fine_iterations=fine))
+        assert result.iterations == cap and not result.converged
 
 
 def test_rigid_fit_fixes_reflections():
@@ -269,3 +287,24 @@ def test_init_and_config_checks(cloud, wide_index):
         ICPConfig(distance_end=20.0)
     with pytest.raises(TypeError):
         ICPMatcher().score(Template(None, None, "icp", {}), Template(None, None, "icp", {}))
+
+
+def test_capped_score_charges_probe_points_without_a_partner(mesh):
+    """score_cap (× res): the score is the mean over every fine probe point of min(d, cap)², so a probe of which
+    half has no partner in the gallery pays cap² for that half, where the book's MSE of the kept pairs (§8.6.1)
+    sees only the half that fits and scores it like a whole face."""
+    gallery_scan = grid_scan(mesh)
+    whole = gallery_scan.points
+    gallery_half = gallery_scan.subset(whole[:, 0] < 0)  # the gallery keeps only the face's right half
+    half = gallery_half.points
+    probe = grid_scan(mesh)
+    kept = ICPMatcher(ICPConfig(fine_points=0))
+    capped = ICPMatcher(ICPConfig(fine_points=0, score_cap=3.0))
+    res = GalleryIndex.from_scan(gallery_half, capped.config).resolution
+    # same face, all of it in the gallery: both near 0
+    assert -capped.score(probe, capped.enroll(gallery_scan)) < 0.01
+    # half of the probe without a partner: the kept-pairs MSE stays near 0, the capped one ≈ share × cap²
+    share = np.mean(cKDTree(half).query(probe.points)[0] > 3.0 * res)
+    assert share > 0.3
+    assert -kept.score(probe, kept.enroll(gallery_half)) < 0.05
+    assert -capped.score(probe, capped.enroll(gallery_half)) == pytest.approx(share * (3.0 * res) ** 2, rel=0.15)

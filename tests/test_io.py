@@ -13,18 +13,7 @@ from plyfile import PlyData
 
 from facerec3d import FaceScan, ScanFormatError
 from facerec3d.io import SUPPORTED_SUFFIXES, load_landmarks_lm3, load_scan, save_scan, write_ply
-
-
-def range_image_scan(rows=12, cols=16, invalid=((0, 0), (5, 7), (11, 15)), seed=1) -> FaceScan:
-    """A sphere cap (radius 60 mm, 1 m in front of the camera, Z < 0) on a grid of 2 mm pixels, some invalid."""
-    r, c = np.mgrid[0:rows, 0:cols].astype(float)
-    x, y = (c - cols / 2) * 2.0, (rows / 2 - r) * 2.0
-    z = -1000.0 + np.sqrt(np.maximum(60.0**2 - x**2 - y**2, 0.0))
-    xyz = np.stack([x, y, z], axis=-1) + np.random.default_rng(seed).normal(0, 0.01, (rows, cols, 3))
-    valid = np.ones((rows, cols), bool)
-    for i, j in invalid:
-        valid[i, j] = False
-    return FaceScan.from_range_image(xyz, valid)
+from tests.conftest import cap_image
 
 
 def assert_same_grid_scan(a, b):
@@ -35,7 +24,7 @@ def assert_same_grid_scan(a, b):
 
 @pytest.fixture
 def cap():
-    return range_image_scan()
+    return cap_image()
 
 
 # ------------------------------------------------------------------ round trips
@@ -100,7 +89,7 @@ def test_ply_from_other_writers_float32_and_quads(tmp_path, byte_order):
 
 # ------------------------------------------------------------------ FRGC .abs
 def test_abs_with_unusual_rows_and_columns(tmp_path):
-    scan = range_image_scan(7, 11, invalid=((3, 4), (6, 10)))
+    scan = cap_image(7, 11, invalid=((3, 4), (6, 10)))
     save_scan(scan, tmp_path / "odd.abs")
     assert (tmp_path / "odd.abs").read_text().startswith("7 rows\n11 columns\npixels (flag X Y Z):\n")
     assert_same_grid_scan(scan, load_scan(tmp_path / "odd.abs"))
@@ -127,7 +116,7 @@ def test_gzip_recognised_by_content_and_scan_id_drops_both_suffixes(tmp_path, ca
 
 
 def test_full_size_abs_loads_fast(tmp_path):
-    scan = range_image_scan(480, 640, invalid=())
+    scan = cap_image(480, 640, invalid=())
     save_scan(scan, tmp_path / "big.abs")
     times = []
     for _ in range(2):

@@ -8,14 +8,14 @@ from hypothesis import strategies as st
 
 from facerec3d import FaceScan, ScanFormatError
 from facerec3d.io import load_landmarks_lm3, load_scan, save_scan, write_lm3, write_ply
-from tests.test_io import range_image_scan
+from tests.conftest import cap_image
 
 FORMATS = ["abs", "abs.gz", "bnt", "ply", "ascii.ply", "npy", "npz", "xyz", "csv", "obj", "off", "stl", "lm3"]
 
 
 def write_seed(fmt: str, path) -> None:
     """A valid small file of the format: a 12×16 range image with invalid pixels (or its points, mesh, landmarks)."""
-    scan = range_image_scan(12, 16)
+    scan = cap_image(12, 16)
     if fmt == "ascii.ply":
         write_ply(scan.replace(normals=np.tile([0.0, 0.0, 1.0], (scan.n_points, 1))), path, binary=False)
     elif fmt == "npy":

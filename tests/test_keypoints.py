@@ -11,7 +11,7 @@ from facerec3d.matching.base import Template
 from facerec3d.matching.keypoints import KeypointConfig, KeypointMatcher, detect_keypoints, match_keypoints
 from facerec3d.matching.registry import load_matcher, make_matcher
 from facerec3d.preprocess import Preprocessor
-from tests.test_regions import model_face
+from tests.conftest import model_face
 
 SMALL = ScannerConfig(rows=320, cols=400, focal_px=1000.0)
 

@@ -3,8 +3,10 @@
 import numpy as np
 import pytest
 
-from facerec3d.evaluation.metrics import cmc, det, eer, rank_k, roc, split_scores, summarize, verification_rate
+from facerec3d.evaluation.metrics import (cmc, det, eer, open_set, rank_k, roc, split_scores, summarize,
+                                          verification_rate)
 from facerec3d.evaluation.scorefile import read_score_rows, read_scores, write_scores
+from tests.conftest import check_against_pyeer
 
 nan = np.nan
 
@@ -151,12 +153,18 @@ def test_summarize_by_hand():
     # t=.7 FMR 3/11 FNMR 1/3 (d>0); t=.6 FMR 4/11 FNMR 1/3 (d<0) -> EER = FNMR = 1/3.
     # VR: FMR <= 0.001 or 0.01 allows no impostor: t=.95 (above the .9 impostor) -> TAR 1/3.
     # *_all: 3 ranked probes + 1 failure -> factor 3/4.
+    # Thresholds: the EER crossing lies between t=.7 (d = 1/3 - 3/11 = 2/33) and t=.6 (d = 1/3 - 4/11 = -1/33):
+    # the nearer is t=.6. FMR <= 0.1 % or 1 %: the highest threshold with the highest TAR is .95.
+    # Open set: best non-mated scores A .9, B .8, C .7, D .4 (4 searches); rank-1 hit A at .95 of 3 mated searches.
+    # FPIR <= 0.1 %, 1 %, 10 %: no non-mated score accepted -> t = .95, FNIR = 2/3.
     expected = {
         "n_probes": 5, "n_processed": 4, "failures": 1, "fta_rate": 0.2, "n_ranked": 3,
-        "n_genuine": 3, "n_impostor": 11,
+        "n_genuine": 3, "n_impostor": 11, "n_subjects": 4, "n_nonmated": 4,
         "rank1": 1 / 3, "rank5": 1.0, "rank1_all": 0.25, "rank5_all": 0.75,
         "eer": 1 / 3, "vr_at_far_0.001": 1 / 3, "vr_at_far_0.01": 1 / 3,
         "vr_at_far_0.001_all": 0.25, "vr_at_far_0.01_all": 0.25,
+        "threshold_at_eer": 0.6, "threshold_at_far_0.001": 0.95, "threshold_at_far_0.01": 0.95,
+        "fnir_at_fpir_0.001": 2 / 3, "fnir_at_fpir_0.01": 2 / 3, "fnir_at_fpir_0.1": 2 / 3,
     }
     assert m.keys() == expected.keys()
     for k, v in expected.items():
@@ -204,3 +212,113 @@ def test_infinite_scores_rank_last_and_first():
     assert verification_rate(genuine, impostor, 0.0) == pytest.approx(2 / 3)
     # FNMR = FMR = 1/3 between 0.85 and 0.8
     assert eer(genuine, impostor) == pytest.approx(1 / 3)
+
+
+def test_roc_drops_only_collinear_points_like_sklearn():
+    from sklearn.metrics import roc_curve
+
+    rng = np.random.default_rng(3)
+    genuine, impostor = np.round(rng.normal(1, 1, 200), 1), np.round(rng.normal(0, 1, 500), 1)
+    fmr, tar, thr = roc(genuine, impostor, drop_intermediate=True)
+    ref = roc_curve(np.r_[np.ones(200), np.zeros(500)], np.r_[genuine, impostor], drop_intermediate=True)
+    np.testing.assert_allclose(fmr, ref[0])
+    np.testing.assert_allclose(tar, ref[1])
+    np.testing.assert_array_equal(thr[1:], ref[2][1:])
+
+
+def test_thresholds_at_the_operating_points_by_hand():
+    # genuine .9 .8 .4, impostor .7 .3 .2 .1 (test_roc_points_by_hand): the EER crossing is between t=.7
+    # (d = 1/12) and t=.4 (d = -1/4); .7 is nearer. FMR <= 0.1 %: TAR 2/3 first reached at t=.8.
+    m = summarize([[0.9, 0.7], [0.8, 0.3], [0.4, 0.2], [0.1, nan]], ["a", "a", "a", "b"], ["a", "c"])
+    assert m["eer"] == pytest.approx(0.25) and m["threshold_at_eer"] == 0.7
+    assert m["vr_at_far_0.001"] == pytest.approx(2 / 3) and m["threshold_at_far_0.001"] == 0.8
+
+
+def test_open_set_by_hand():
+    # gallery subjects a, b, c; probes: a (a .9 beats b .5), b (a .7 beats b .6: rank 2), c (c .8, best other .3),
+    # x (not enrolled, best .65). Non-mated scores: .5 .7 .3 .65; rank-1 mated scores: a .9, c .8 (b is a miss).
+    S = [[0.9, 0.5, 0.1], [0.7, 0.6, 0.2], [0.3, 0.1, 0.8], [0.65, 0.2, 0.1]]
+    fpir, fnir, thr = open_set(S, ["a", "b", "c", "x"], ["a", "b", "c"])
+    # thresholds: inf .9 .8 .7 .65 .6 .5 .3 .2 .1 (every distinct score of the two sets; .6 and .2, .1 are not)
+    np.testing.assert_array_equal(thr, [np.inf, 0.9, 0.8, 0.7, 0.65, 0.5, 0.3])
+    np.testing.assert_allclose(fpir, [0, 0, 0, 1 / 4, 2 / 4, 3 / 4, 1])
+    np.testing.assert_allclose(fnir, [1, 2 / 3, 1 / 3, 1 / 3, 1 / 3, 1 / 3, 1 / 3])
+    m = summarize(S, ["a", "b", "c", "x"], ["a", "b", "c"])
+    assert m["n_nonmated"] == 4 and m["fnir_at_fpir_0.1"] == pytest.approx(1 / 3)  # t=.8: FPIR 0
+
+
+def test_bootstrap_resamples_subjects_not_scores():
+    # 10 subjects x 4 probes; subjects 0 and 1 miss every probe, the others hit every one: rank-1 = 0.8.
+    # Drawing 10 subjects, the misses drawn X ~ Binomial(10, 0.2): P(X <= 5) = 0.9936, P(X <= 4) = 0.967,
+    # P(X = 0) = 0.107, so the 2.5 % and 97.5 % points of rank-1 = 1 - X/10 are 0.5 and 1.0. (Resampling the
+    # 40 probes instead would give Binomial(40, 0.2) / 40 and a lower bound near 0.675.)
+    gallery = [f"s{i}" for i in range(10)]
+    probes = [f"s{i}" for i in range(10) for _ in range(4)]
+    S = np.zeros((40, 10))
+    for row, subject in enumerate(probes):
+        k = int(subject[1:])
+        S[row, k] = 1.0 if k >= 2 else -1.0
+    m = summarize(S, probes, gallery, bootstrap=4000, seed=1)
+    assert m["rank1"] == pytest.approx(0.8)
+    assert m["ci95"]["rank1"] == [0.5, 1.0]
+
+
+def random_scores(n_subjects: int, seed: int, n_gallery: int = 100, probes_each: int = 3):
+    """Probes of the first n_subjects of a fixed gallery; genuine scores shifted by 2.5 plus a subject effect."""
+    rng = np.random.default_rng(seed)
+    gallery = [f"s{i:03d}" for i in range(n_gallery)]
+    rows = np.repeat(np.arange(n_subjects), probes_each)
+    S = rng.normal(0, 1, (rows.size, n_gallery))
+    S[np.arange(rows.size), rows] += 2.5 + rng.normal(0, 0.7, n_subjects)[rows]
+    return S, [gallery[i] for i in rows], gallery
+
+
+def test_intervals_contain_the_estimate_and_shrink_as_subjects_are_added():
+    figures = ("rank1", "eer", "vr_at_far_0.01", "fnir_at_fpir_0.1", "threshold_at_eer")
+    widths = []
+    for n in (6, 24, 96):
+        m = summarize(*random_scores(n, seed=n), bootstrap=300, seed=0)
+        for k in figures:
+            lo, hi = m["ci95"][k]
+            assert lo <= m[k] <= hi, (n, k)
+        widths.append([m["ci95"][k][1] - m["ci95"][k][0] for k in figures])
+    widths = np.array(widths)
+    assert (widths[1:] < widths[:-1]).all(), widths
+
+
+def test_score_matrix_from_bob5_and_csv_files(tmp_path):
+    from facerec3d.evaluation.scorefile import read_score_matrix
+
+    lines = [("A", "a1", "A", "p1", 0.9), ("B", "b1", "A", "p1", 0.2), ("A", "a2", "A", "p1", 0.5),
+             ("A", "a1", "B", "p2", 0.4), ("B", "b1", "B", "p2", 0.8)]
+    (tmp_path / "s5.txt").write_text("".join(f"{c} {m} {r} {p} {s}\n" for c, m, r, p, s in lines))
+    (tmp_path / "s.csv").write_text("probe_template_id,probe_subject_id,bio_ref_template_id,bio_ref_subject_id,score\n"
+                                    + "".join(f"{p},{r},{m},{c},{-s}\n" for c, m, r, p, s in lines))
+    expected = summarize([[0.9, 0.5, 0.2], [0.4, np.nan, 0.8]], ["A", "B"], ["A", "A", "B"], bootstrap=50)
+    for name, fmt, higher in (("s5.txt", "bob5", True), ("s.csv", "csv", False)):
+        m = read_score_matrix(tmp_path / name, fmt, higher)
+        assert list(m.probe_labels) == ["p1", "p2"] and list(m.probe_ids) == ["A", "B"]
+        assert sorted(m.gallery_ids) == ["A", "A", "B"] and np.isnan(m.S).sum() == 1
+        assert summarize(m.S, m.probe_ids, m.gallery_ids, bootstrap=50) == expected
+    (tmp_path / "bad.csv").write_text("probe_subject_id,score\nA,1\n")
+    with pytest.raises(ValueError, match="bio_ref_subject_id"):
+        read_score_matrix(tmp_path / "bad.csv", "csv")
+    (tmp_path / "twice.txt").write_text("A a1 A p1 0.9\nA a1 A p1 0.8\n")
+    with pytest.raises(ValueError, match="twice"):
+        read_score_matrix(tmp_path / "twice.txt", "bob5")
+    (tmp_path / "clash.txt").write_text("A A p1 0.9\nB C p1 0.8\n")
+    with pytest.raises(ValueError, match="two subjects"):
+        read_score_matrix(tmp_path / "clash.txt", "bob4")
+
+
+def test_eer_and_vr_agree_with_pyeer_on_a_score_file(tmp_path):
+    # 50 probes against 101 subjects: 5,000 distinct impostor scores, so FMR 0.1 % and 1 % are reached exactly
+    # and pyeer's fmr1000 / fmr100 equal ours too
+    rng = np.random.default_rng(11)
+    gallery = [f"g{i}" for i in range(101)]
+    S = rng.normal(0, 1, (50, 101))
+    S[np.arange(50), np.arange(50)] += 2.5
+    write_scores(tmp_path / "s.txt", S, gallery[:50], [f"p{i}" for i in range(50)], gallery)
+    ours, stats = check_against_pyeer(tmp_path / "s.txt")
+    assert 0 < ours < 0.5
+    assert verification_rate(*read_scores(tmp_path / "s.txt"), 0.001) == pytest.approx(1 - stats.fmr1000)

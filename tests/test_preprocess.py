@@ -7,7 +7,7 @@ import pytest
 from click.testing import CliRunner
 from scipy import ndimage
 
-from facerec3d import FaceScan, FailureToAcquire
+from facerec3d import FailureToAcquire
 from facerec3d.cli import main
 from facerec3d.datasets.synthetic import EXPRESSIONS, FaceScanner, ScanSpec, quick_scan
 from facerec3d.geometry.transforms import rotation_angle
@@ -22,6 +22,7 @@ from facerec3d.preprocess import (
     spike_mask,
 )
 from facerec3d.preprocess.batch import preprocess_files
+from tests.conftest import faceless_scans
 
 
 @pytest.fixture(scope="module")
@@ -39,6 +40,7 @@ def posed():
     return out
 
 
+@pytest.mark.slow  # a minute or more on 2 cores
 def test_nose_tip_error(posed):
     err = np.array([np.linalg.norm(landmarks_in_input_frame(face)["nose_tip"] - t.landmarks["nose_tip"])
                     for t, face in posed])
@@ -92,15 +94,6 @@ def test_filled_holes_match_the_true_surface():
         assert in_hole.sum() >= 0.9 * inside.sum()  # the enclosed injected holes were filled
     assert n > 200
     assert np.sqrt(sq / n) < 1.0
-
-
-def faceless_scans():
-    r, c = np.mgrid[0:120, 0:160].astype(float)
-    wall = np.stack([(c - 80) * 2.0, (60 - r) * 2.0, np.full(r.shape, -1500.0)], axis=-1)
-    rng = np.random.default_rng(3)
-    noise = np.stack([(c - 80) * 2.0, (60 - r) * 2.0, rng.uniform(-1500, -800, r.shape)], axis=-1)
-    empty = FaceScan(points=np.zeros((0, 3)), grid=np.zeros((0, 2)), grid_shape=(4, 4))
-    return {"wall": FaceScan.from_range_image(wall), "noise": FaceScan.from_range_image(noise), "empty": empty}
 
 
 @pytest.mark.parametrize("kind", ["wall", "noise", "empty"])

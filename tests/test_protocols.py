@@ -3,7 +3,7 @@
 import pytest
 
 from facerec3d.datasets.catalog import open_dataset
-from facerec3d.evaluation.protocols import split
+from facerec3d.datasets.protocols import split
 
 
 def touch(root, names):
@@ -13,7 +13,7 @@ def touch(root, names):
         p.write_text("")
 
 
-def test_bosphorus_neutral_gallery_and_separate_pose_and_occlusion(tmp_path):
+def test_bosphorus_neutral_gallery_and_every_subset(tmp_path):
     touch(tmp_path, ["bs000/bs000_N_N_0.bnt", "bs000/bs000_N_N_1.bnt", "bs000/bs000_E_HAPPY_0.bnt",
                      "bs000/bs000_YR_R30_0.bnt", "bs000/bs000_O_EYE_0.bnt",
                      "bs001/bs001_N_N_0.bnt", "bs001/bs001_LFAU_12_0.bnt", "bs001/bs001_CAU_A22_0.bnt"])
@@ -24,7 +24,9 @@ def test_bosphorus_neutral_gallery_and_separate_pose_and_occlusion(tmp_path):
     names = {k: sorted(ds.records[sp.probes[j]].scan_id for j in v) for k, v in sp.subsets.items()}
     assert names == {"neutral": ["bs000_N_N_1"],
                      "non-neutral": ["bs000_E_HAPPY_0", "bs001_CAU_A22_0", "bs001_LFAU_12_0"],
-                     "pose": ["bs000_YR_R30_0"], "occlusion": ["bs000_O_EYE_0"]}
+                     "pose": ["bs000_YR_R30_0"], "occlusion": ["bs000_O_EYE_0"],
+                     "E": ["bs000_E_HAPPY_0"], "E_HAPPY": ["bs000_E_HAPPY_0"], "LFAU": ["bs001_LFAU_12_0"],
+                     "CAU": ["bs001_CAU_A22_0"], "YR": ["bs000_YR_R30_0"]}
 
 
 def test_frgc_gallery_is_the_first_neutral_scan(tmp_path):
@@ -49,3 +51,63 @@ def test_roles_and_all_vs_all(tmp_path):
     assert every.gallery == every.probes == [0, 1, 2] and every.exclude_self
     with pytest.raises(ValueError, match="unknown protocol"):
         split(ds, "lfw")
+
+
+def test_every_bosphorus_type_and_emotion_is_a_subset(tmp_path):
+    types = ["E_ANGER", "E_HAPPY", "E_SURPRISE", "LFAU_12", "UFAU_4", "CAU_A22", "YR_R10", "YR_L45", "PR_U", "PR_D",
+             "CR_RD", "O_MOUTH", "O_GLASSES"]
+    touch(tmp_path, ["bs000/bs000_N_N_0.bnt", *(f"bs000/bs000_{t}_0.bnt" for t in types)])
+    ds = open_dataset(tmp_path)
+    sp = split(ds)
+    names = {k: sorted(ds.records[sp.probes[j]].label for j in v) for k, v in sp.subsets.items()}
+    assert names["E"] == ["E_ANGER", "E_HAPPY", "E_SURPRISE"]
+    assert {k: names[k] for k in ("E_ANGER", "E_HAPPY", "E_SURPRISE")} == {
+        "E_ANGER": ["E_ANGER"], "E_HAPPY": ["E_HAPPY"], "E_SURPRISE": ["E_SURPRISE"]}
+    assert (names["LFAU"], names["UFAU"], names["CAU"]) == (["LFAU_12"], ["UFAU_4"], ["CAU_A22"])
+    assert (names["YR"], names["PR"], names["CR"]) == (["YR_L45", "YR_R10"], ["PR_D", "PR_U"], ["CR_RD"])
+    assert names["occlusion"] == ["O_GLASSES", "O_MOUTH"] and names["pose"] == sorted(
+        ["YR_R10", "YR_L45", "PR_U", "PR_D", "CR_RD"])
+    assert len(names["non-neutral"]) == 6 and "neutral" not in names  # the one N scan is the gallery
+
+
+def test_pose_column_keeps_turned_probes_out_of_the_expression_subsets(tmp_path):
+    """A ±25° yaw probe is neutral in expression but not frontal: it is in its pose subset only, and a frontal
+    neutral scan is preferred for the gallery even when a turned one comes first."""
+    (tmp_path / "m.csv").write_text("path,subject,expression,pose\n1a.abs,1,neutral,yaw\n1b.abs,1,neutral,\n"
+                                    "1c.abs,1,neutral,frontal\n1d.abs,1,smile,yaw\n1e.abs,1,smile,\n")
+    ds = open_dataset(tmp_path / "m.csv")
+    sp = split(ds)
+    assert [ds.records[i].scan_id for i in sp.gallery] == ["1b"]
+    names = {k: sorted(ds.records[sp.probes[j]].scan_id for j in v) for k, v in sp.subsets.items()}
+    assert names == {"neutral": ["1c"], "non-neutral": ["1e"], "pose:yaw": ["1a", "1d"], "pose:frontal": ["1c"]}
+
+
+def test_frgc_first_neutral_is_the_earliest_semester(tmp_path):
+    touch(tmp_path, ["nd1/Spring2004range/1d1.abs", "nd1/Fall2003range/1d2.abs", "nd1/Spring2003range/1d3.abs"])
+    ds = open_dataset(tmp_path)
+    assert [ds.records[i].scan_id for i in split(ds).gallery] == ["1d3"]  # not the alphabetically first folder
+
+
+def test_frgc_exp3_masks_by_hand(tmp_path):
+    """ROC I: same semester; ROC II: same academic year (Fall 2003 and Spring 2004: every pair); ROC III: target
+    (gallery column) in Fall 2003, query (probe row) in Spring 2004. Spring 2003 is left out."""
+    names = ["nd1/Spring2003range/1d0.abs", "nd1/Fall2003range/1d1.abs", "nd1/Fall2003range/2d2.abs",
+             "nd1/Spring2004range/1d3.abs", "nd1/Spring2004range/2d4.abs", "nd1/Spring2004range/2d5.abs"]
+    touch(tmp_path, names)
+    ds = open_dataset(tmp_path)
+    sp = split(ds, "frgc-exp3")
+    ids = [ds.records[i].scan_id for i in sp.probes]
+    assert sp.gallery == sp.probes and sp.exclude_self and sorted(ids) == ["1d1", "1d3", "2d2", "2d4", "2d5"]
+    assert [ds.records[i].scan_id for i in sp.excluded] == ["1d0"] and "Spring 2003" in sp.note
+    fall = {"1d1", "2d2"}
+    for name, rule in (("ROC I", lambda q, t: (q in fall) == (t in fall)), ("ROC II", lambda q, t: True),
+                       ("ROC III", lambda q, t: q not in fall and t in fall)):
+        expected = [[rule(q, t) for t in ids] for q in ids]
+        assert sp.masks[name].tolist() == expected, name
+    # a manifest's session column gives the semester too; a scan without one is refused
+    (tmp_path / "m.csv").write_text("path,subject,session\na.abs,1,Fall 2003\nb.abs,1,spring2004\n")
+    assert split(open_dataset(tmp_path / "m.csv"), "frgc-exp3").masks["ROC III"].tolist() == [[False, False],
+                                                                                                [True, False]]
+    (tmp_path / "n.csv").write_text("path,subject\na.abs,1\n")
+    with pytest.raises(ValueError, match="no FRGC semester"):
+        split(open_dataset(tmp_path / "n.csv"), "frgc-exp3")

@@ -6,7 +6,7 @@ import pytest
 
 from facerec3d import FaceScan
 from facerec3d.config import read_settings
-from facerec3d.datasets.model import load_model
+from facerec3d.facemodel import load_model
 from facerec3d.datasets.synthetic import ScannerConfig, quick_scan
 from facerec3d.matching.base import rank
 from facerec3d.matching.expression import expression_mobility
@@ -14,17 +14,10 @@ from facerec3d.matching.icp import ICPMatcher
 from facerec3d.matching.registry import load_matcher, make_matcher
 from facerec3d.matching.regions import RegionICPConfig, RegionICPMatcher, region_masks
 from facerec3d.preprocess import Preprocessor
-from facerec3d.gallery.synthetic import frontal_face
+from tests.conftest import model_face
 
 SMALL = ScannerConfig(rows=320, cols=400, focal_px=1000.0)
 SUBJECTS = 8
-
-
-def model_face(subject: int, expression: str = "neutral", noise_mm: float = 0.2) -> FaceScan:
-    """A face as preprocessing leaves it, straight from the model (gallery.synthetic), with depth noise and the
-    model's true fiducials as landmarks; subject ids "s<n>"."""
-    face = frontal_face(subject, noise_mm=noise_mm, seed=len(expression), expression=expression)
-    return face.replace(meta=face.meta.replace(subject=f"s{subject}"))
 
 
 @pytest.fixture(scope="module")

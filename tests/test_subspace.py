@@ -141,9 +141,9 @@ def test_missing_cells_filled_by_training_mean_or_nearest_cell():
         faces.append(depth_to_scan(z, window.grid))
         Z.append(window.window(z).ravel())
     matcher = make_matcher("pca", {"n_components": 1, "depth": asdict(window)}).fit(faces, list("aabbccdd"))
-    np.testing.assert_allclose(matcher.mean, np.nanmean(Z, axis=0))
+    np.testing.assert_allclose(matcher.mean_, np.nanmean(Z, axis=0))
     hole = np.isnan(Z[0])
-    np.testing.assert_allclose(matcher.vector(faces[0])[hole], matcher.mean[hole])
+    np.testing.assert_allclose(matcher.vector(faces[0])[hole], matcher.mean_[hole])
     nearest = make_matcher("pca", {"depth": {"half_width_mm": 10.0}}).vector(faces[0]).reshape(11, 11)
     r, c = np.argwhere(hole.reshape(11, 11))[0]
     z = window.window(depth_image(faces[0]))

@@ -11,7 +11,8 @@ owners and point facerec3d at them in place; nothing is copied.
   are expressions, YR / PR / CR are poses, O occlusions.
 - Manifest CSV: columns `path,subject` and optional `expression`
   (`neutral` / `non-neutral` or a finer label), `role` (`gallery` / `probe`),
-  `session` and `pose` (a head-pose label, reported as its own probe subsets); scans may be
+  `session` (default: the FRGC session folder in the path, if any) and `pose` (a head-pose label, reported as
+  its own probe subsets; empty or `frontal` is frontal); scans may be
   depth frames (`.png`, `.tif`) with an `intrinsics.json` beside them or above; relative paths are relative to the manifest's folder.
 """
 
@@ -108,10 +109,14 @@ def scan_record(path: str | Path) -> ScanRecord | None:
     return None
 
 
+def _frgc_session(path: Path) -> str | None:
+    """The FRGC session folder (`Fall2003range`, ...) a file is in, or None."""
+    return next((part for part in path.parts if part in FRGC_SESSIONS), None)
+
+
 def _frgc_record(path: Path) -> ScanRecord:
     m = FRGC_PATTERN.match(path.name)
-    session = next((part for part in path.parts if part in FRGC_SESSIONS), None)
-    return ScanRecord(path, m["subject"], f"{m['subject']}d{m['seq']}", session=session)
+    return ScanRecord(path, m["subject"], f"{m['subject']}d{m['seq']}", session=_frgc_session(path))
 
 
 def _bosphorus_record(path: Path) -> ScanRecord:
@@ -143,8 +148,9 @@ def read_manifest(path: str | Path) -> Dataset:
         if role not in (None, "gallery", "probe"):
             raise DatasetError(f"{path}, line {line}: role must be gallery or probe, not {role!r}")
         kind = None if expression is None else ("neutral" if expression == "neutral" else "expression")
+        session = (row.get("session") or "").strip() or _frgc_session(p)
         records.append(ScanRecord(p, row["subject"].strip(), scan_stem(p), expression, kind, label,
-                                  row.get("session") or None, role, (row.get("pose") or "").strip() or None))
+                                  session, role, (row.get("pose") or "").strip() or None))
     return Dataset(tuple(records), "manifest", path)
 
 

@@ -35,7 +35,8 @@ import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
-from facerec3d.datasets.model import EXPRESSION_PRESETS, MorphableModel, load_model
+from facerec3d.errors import InputError
+from facerec3d.facemodel import EXPRESSION_PRESETS, MorphableModel, load_model
 from facerec3d.geometry.transforms import rotation_from_euler
 from facerec3d.scan import FaceScan, ScanMeta
 
@@ -663,7 +664,7 @@ def plan_dataset(cfg: DatasetConfig) -> list[ScanSpec]:
     specs = []
     unknown = set(cfg.expressions) - set(EXPRESSIONS)
     if unknown or not cfg.expressions:
-        raise ValueError(f"unknown expressions {sorted(unknown)}: use some of {', '.join(EXPRESSIONS)}")
+        raise InputError(f"unknown expressions {sorted(unknown)}: use some of {', '.join(EXPRESSIONS)}")
     occluders = cfg.identity.occluders
     if not occluders:
         raise ValueError("identity.occluders is empty: give (None,) for no occluders")
@@ -694,11 +695,20 @@ BOSPHORUS_TYPES = {"neutral": ("N", "N"), "smile": ("E", "HAPPY"), "open-mouth":
 FRGC_SESSIONS = ("Spring2003range", "Fall2003range", "Spring2004range")
 
 
+#: The head-pose label (manifest `pose` column) of the scan plan's kinds that are not frontal.
+POSE_LABELS = {"yaw": "yaw", "pose": "yaw-pitch-roll"}
+
+
+def scan_session(spec: ScanSpec) -> str:
+    """The FRGC semester folder of a scan: a subject's scans go round Spring 2003, Fall 2003, Spring 2004, so
+    with three or more scans per subject every semester has some (FRGC Experiment 3 and its masks can be run)."""
+    return FRGC_SESSIONS[spec.seed % len(FRGC_SESSIONS)]
+
+
 def scan_path(spec: ScanSpec, index: int, fmt: str) -> str:
-    """Relative path of a scan in FRGC (`abs`) or Bosphorus (`bnt`) layout."""
+    """Relative path of a scan in FRGC (`abs`, in its semester's folder) or Bosphorus (`bnt`) layout."""
     if fmt == "abs":
-        session = FRGC_SESSIONS[min(spec.seed * len(FRGC_SESSIONS) // 8, len(FRGC_SESSIONS) - 1)]
-        return f"nd1/{session}/{subject_id(spec.subject)}d{index + 100:03d}.abs.gz"
+        return f"nd1/{scan_session(spec)}/{subject_id(spec.subject)}d{index + 100:03d}.abs.gz"
     if fmt == "bnt":
         kind, sub = BOSPHORUS_TYPES[spec.expression]
         if spec.expression == "neutral" and abs(spec.yaw) >= 10:
@@ -708,7 +718,7 @@ def scan_path(spec: ScanSpec, index: int, fmt: str) -> str:
     raise ValueError(f"unknown format {fmt!r}: use 'abs' or 'bnt'")
 
 
-MANIFEST_COLUMNS = ("path", "subject", "expression", "label", "yaw", "pitch", "roll") + tuple(
+MANIFEST_COLUMNS = ("path", "subject", "expression", "label", "session", "pose", "yaw", "pitch", "roll") + tuple(
     f"{name}_{axis}" for name in TRUTH_LANDMARKS for axis in "xyz"
 ) + ("occluder",)
 
@@ -716,10 +726,12 @@ MANIFEST_COLUMNS = ("path", "subject", "expression", "label", "yaw", "pitch", "r
 def write_dataset(out: str | Path, cfg: DatasetConfig = DatasetConfig(), fmt: str = "abs", progress: bool = False) -> Path:
     """Write a synthetic dataset in FRGC (`abs`) or Bosphorus (`bnt`) layout with `manifest.csv`.
 
-    The manifest has `path,subject,expression` (as `facerec3d` datasets read
-    it) plus the ground truth: fine expression label, head pose (degrees) and
-    the fiducials in scan coordinates (mm), and last the scan's occluder
-    (empty for none). Returns the manifest's path.
+    The manifest has `path,subject,expression,label,session,pose` (as
+    `facerec3d` datasets read it: the FRGC semester folder, empty for `bnt`;
+    the head-pose label of the ±yaw_probe scans, `yaw`, and of the free-pose
+    scans, `yaw-pitch-roll`, empty for near-frontal ones) plus the ground
+    truth: head pose (degrees) and the fiducials in scan coordinates (mm), and
+    last the scan's occluder (empty for none). Returns the manifest's path.
     """
     from facerec3d.io import save_scan
 
@@ -738,8 +750,9 @@ def write_dataset(out: str | Path, cfg: DatasetConfig = DatasetConfig(), fmt: st
         (out / rel).parent.mkdir(parents=True, exist_ok=True)
         save_scan(s.scan, out / rel)
         row = {"path": rel, "subject": s.scan.meta.subject, "expression": s.scan.meta.expression,
-               "label": s.scan.meta.extra["label"], "yaw": f"{spec.yaw:.3f}", "pitch": f"{spec.pitch:.3f}",
-               "roll": f"{spec.roll:.3f}"}
+               "label": s.scan.meta.extra["label"], "session": scan_session(spec) if fmt == "abs" else "",
+               "pose": POSE_LABELS.get(SCAN_PLAN[spec.seed % len(SCAN_PLAN)], ""), "yaw": f"{spec.yaw:.3f}",
+               "pitch": f"{spec.pitch:.3f}", "roll": f"{spec.roll:.3f}"}
         for name in TRUTH_LANDMARKS:
             for axis, value in zip("xyz", s.landmarks[name]):
                 row[f"{name}_{axis}"] = f"{value:.4f}"
@@ -753,7 +766,7 @@ def write_dataset(out: str | Path, cfg: DatasetConfig = DatasetConfig(), fmt: st
     return manifest
 
 
-def quick_scan(subject: int = 0, expression: str = "neutral", yaw: float = 0.0, pitch: float = 0.0,
+def quick_scan(subject: int = 0, expression: str = "neutral", *, yaw: float = 0.0, pitch: float = 0.0,
                roll: float = 0.0, seed: int = 0, scanner: ScannerConfig = ScannerConfig(),
                identity: IdentityConfig = IdentityConfig(), occluder: str | None = None, **changes) -> SyntheticScan:
     """One synthetic scan in a line (tests, examples). Extra keywords change the ScannerConfig."""

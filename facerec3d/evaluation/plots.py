@@ -56,8 +56,10 @@ def plot_roc(curves: Mapping[str, tuple], path: str | Path, title: str = "ROC") 
     _save(fig, ax, path, legend=True)
 
 
-def plot_det(curves: Mapping[str, tuple], path: str | Path, title: str = "DET") -> None:
-    """DET curves {name: (fmr, fnmr)} on normal-deviate axes, ticks labelled in %, as PNG.
+def plot_det(curves: Mapping[str, tuple], path: str | Path, title: str = "DET",
+             xlabel: str = "False match rate (FMR)", ylabel: str = "False non-match rate (FNMR)") -> None:
+    """DET curves {name: (fmr, fnmr)} on normal-deviate axes, ticks labelled in %, as PNG
+    (also the open-set DET: FNIR against FPIR, with those labels).
 
     Each axis shows Φ⁻¹(rate) (scipy.stats.norm.ppf) from the lowest non-zero
     rate drawn (at least 0.01 %) up to 99 %; rates outside, including 0 and 1,
@@ -75,7 +77,7 @@ def plot_det(curves: Mapping[str, tuple], path: str | Path, title: str = "DET") 
         axis.set_ticks(norm.ppf(ticks), [_percent(t) for t in ticks])
     ax.set_xlim(norm.ppf(lo), norm.ppf(hi))
     ax.set_ylim(norm.ppf(lo), norm.ppf(hi))
-    ax.set(xlabel="False match rate (FMR)", ylabel="False non-match rate (FNMR)", title=title)
+    ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
     _save(fig, ax, path, legend=True)
 
 
@@ -97,18 +99,37 @@ def plot_cmc(curves: Mapping[str, np.ndarray], path: str | Path, max_rank: int |
     _save(fig, ax, path, legend=True)
 
 
-def plot_score_histograms(genuine, impostor, path: str | Path, title: str = "Score distributions") -> None:
-    """Genuine and impostor score densities on shared bins (higher = more similar), as PNG."""
+def plot_score_histograms(genuine, impostor, path: str | Path, title: str = "Score distributions") -> list[str]:
+    """Genuine and impostor score densities on shared bins (higher = more similar), as PNG; returns the legend labels.
+
+    Every score is drawn and counted: ±inf scores (e.g. comparisons the cascade
+    skipped, or that could not be aligned) fall in an extra bin just past the
+    finite ones, and each label gives the class's count with how many of them
+    are infinite, so the counts are those of the metrics table.
+    """
     fig, ax = _figure()
     genuine, impostor = np.asarray(genuine, float), np.asarray(impostor, float)
     both = np.r_[genuine, impostor]
-    both = both[np.isfinite(both)]
+    finite = both[np.isfinite(both)]
+    infinite = finite.size < both.size
+    labels = []
     if both.size:
-        bins = np.histogram_bin_edges(both, bins=min(100, max(10, int(np.sqrt(both.size)))))
+        edges = np.histogram_bin_edges(finite if finite.size else [0.0], bins=min(100, max(10, int(np.sqrt(both.size)))))
+        if infinite:  # one bin each side for -inf and +inf, shaded
+            step = edges[1] - edges[0]
+            edges = np.r_[edges[0] - step, edges, edges[-1] + step]
+            ax.axvspan(edges[0], edges[1], color="0.9", zorder=0)
+            ax.axvspan(edges[-2], edges[-1], color="0.9", zorder=0)
+        mids = (edges[0] + edges[1]) / 2, (edges[-2] + edges[-1]) / 2
         for scores, name, color in ((genuine, "genuine", "tab:green"), (impostor, "impostor", "tab:red")):
-            scores = scores[np.isfinite(scores)]
-            if scores.size:
-                ax.hist(scores, bins=bins, density=True, histtype="stepfilled", alpha=0.45, color=color,
-                        label=f"{name} ({scores.size})")
-    ax.set(xlabel="Score (higher = more similar)", ylabel="Density", title=title)
+            if not scores.size:
+                continue
+            counts = [(sign, int((scores == sign * np.inf).sum())) for sign in (-1, 1)]
+            extra = "".join(f", {n} at {'−' if sign < 0 else '+'}inf" for sign, n in counts if n)
+            labels.append(f"{name} ({scores.size}{extra})")
+            ax.hist(np.clip(scores, *mids), bins=edges, density=True, histtype="stepfilled", alpha=0.45, color=color,
+                    label=labels[-1])
+    ax.set(xlabel="Score (higher = more similar)" + ("; shaded bins: ±inf" if infinite else ""), ylabel="Density",
+           title=title)
     _save(fig, ax, path, legend=True)
+    return labels

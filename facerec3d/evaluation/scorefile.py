@@ -1,6 +1,7 @@
-"""Score files in the 4-column text format of Idiap's bob framework.
+"""Score files in the formats of Idiap's bob framework.
 
-One comparison per line, fields separated by white space::
+facerec3d writes the 4-column text format, one comparison per line, fields
+separated by white space::
 
     claimed_id real_id probe_label score
 
@@ -8,15 +9,26 @@ claimed_id is the gallery subject compared against, real_id the probe's true
 subject, probe_label the probe scan's id, score the similarity (higher = more
 similar). A gallery subject with several templates gives several lines for
 the same probe. A comparison is genuine when claimed_id == real_id.
+
+`read_score_matrix` also reads bob's 5-column format (``claimed_id
+model_label real_id probe_label score``, the template named) and bob 5's CSV
+score files (a header naming ``probe_subject_id`` or ``probe_subject``,
+``probe_template_id`` / ``probe_reference_id`` / ``probe_key``,
+``bio_ref_subject_id`` or ``bio_ref_subject``, optionally
+``bio_ref_template_id`` / ``bio_ref_reference_id``, and ``score``; other
+columns are ignored), so any system's scores can be evaluated.
 """
 
 from __future__ import annotations
 
+import csv
 from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
+
+from facerec3d.errors import InputError
 
 
 class ScoreRows(NamedTuple):
@@ -70,21 +82,27 @@ def read_score_rows(path: str | Path) -> ScoreRows:
 
     Raises ValueError naming the file and line on a malformed line.
     """
-    cols: tuple[list, list, list, list] = ([], [], [], [])
+    claimed, real, label, score = _read_columns(path, 4)
+    return ScoreRows(claimed, real, label, score)
+
+
+def _read_columns(path: str | Path, n: int) -> list[np.ndarray]:
+    """The n white-space separated columns of a score file (str, the last float); blank lines skipped."""
+    cols: list[list] = [[] for _ in range(n)]
     with open(path, encoding="utf-8") as f:
-        for n, line in enumerate(f, 1):
+        for line_no, line in enumerate(f, 1):
             parts = line.split()
             if not parts:
                 continue
             try:
-                if len(parts) != 4:
-                    raise ValueError(f"expected 4 fields, got {len(parts)}")
-                score = float(parts[3])
+                if len(parts) != n:
+                    raise ValueError(f"expected {n} fields, got {len(parts)}")
+                parts[-1] = float(parts[-1])
             except ValueError as e:
-                raise ValueError(f"{path}:{n}: {e}") from None
-            for col, value in zip(cols, (*parts[:3], score)):
+                raise InputError(f"{path}:{line_no}: {e}") from None
+            for col, value in zip(cols, parts):
                 col.append(value)
-    return ScoreRows(*(np.array(c, dtype=str) for c in cols[:3]), np.array(cols[3], dtype=float))
+    return [np.array(c, dtype=str) for c in cols[:-1]] + [np.array(cols[-1], dtype=float)]
 
 
 def read_scores(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -92,3 +110,94 @@ def read_scores(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     rows = read_score_rows(path)
     same = rows.claimed_id == rows.real_id
     return rows.score[same], rows.score[~same]
+
+
+SCORE_FORMATS = ("bob4", "bob5", "csv")
+CSV_COLUMNS = {  # role -> accepted column names of a bob CSV score file, first found wins
+    "real_id": ("probe_subject_id", "probe_subject"),
+    "probe_label": ("probe_template_id", "probe_reference_id", "probe_key"),
+    "claimed_id": ("bio_ref_subject_id", "bio_ref_subject"),
+    "model_label": ("bio_ref_template_id", "bio_ref_reference_id"),
+}
+
+
+class ScoreMatrix(NamedTuple):
+    """A score file as a matrix: rows are probes (in order of first appearance), columns gallery templates."""
+
+    S: np.ndarray  # (n_probes, n_templates), NaN where the file has no comparison
+    probe_ids: np.ndarray  # str: each probe's subject
+    probe_labels: np.ndarray  # str
+    gallery_ids: np.ndarray  # str: each template's subject
+
+
+def _csv_columns(path: str | Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray, np.ndarray]:
+    with open(path, newline="", encoding="utf-8") as f:
+        reader = csv.DictReader(f)
+        header = reader.fieldnames or []
+        chosen = {role: next((c for c in names if c in header), None) for role, names in CSV_COLUMNS.items()}
+        missing = [f"{role} ({' or '.join(CSV_COLUMNS[role])})" for role, c in chosen.items()
+                   if c is None and role != "model_label"] + ([] if "score" in header else ["score"])
+        if missing:
+            raise InputError(f"{path}: not a bob CSV score file: no column for {', '.join(missing)}")
+        rows = list(reader)
+    try:
+        score = np.array([float(r["score"]) for r in rows])
+    except (TypeError, ValueError) as e:
+        raise InputError(f"{path}: a score is not a number ({e})") from None
+    col = {role: None if c is None else np.array([r[c] for r in rows], dtype=str) for role, c in chosen.items()}
+    return col["claimed_id"], col["model_label"], col["real_id"], col["probe_label"], score
+
+
+def _first_order(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct values in order of first appearance, and each element's index among them."""
+    distinct, first, index = np.unique(values, return_index=True, return_inverse=True)
+    order = np.argsort(first)
+    position = np.empty_like(order)
+    position[order] = np.arange(order.size)
+    return distinct[order], position[index]
+
+
+def read_score_matrix(path: str | Path, fmt: str = "bob4", higher_is_better: bool = True) -> ScoreMatrix:
+    """A score file (`SCORE_FORMATS`) as a score matrix, similarities (negated when not higher_is_better).
+
+    A probe is a probe label; a gallery template is (claimed_id, model_label),
+    or in the 4-column format (claimed_id, k) for the k-th line of that probe
+    with that claimed_id (templates of one subject are told apart by order,
+    which leaves every figure unchanged: a subject scores its best template).
+    Comparisons missing from the file are NaN. Raises ValueError on a probe
+    label with two subjects or a comparison given twice.
+    """
+    if fmt == "bob4":
+        claimed, real, label, score = _read_columns(path, 4)
+        model = None
+    elif fmt == "bob5":
+        claimed, model, real, label, score = _read_columns(path, 5)
+    elif fmt == "csv":
+        claimed, model, real, label, score = _csv_columns(path)
+    else:
+        raise InputError(f"unknown score format {fmt!r}: use one of {', '.join(SCORE_FORMATS)}")
+    if score.size == 0:
+        raise InputError(f"{path}: no scores")
+    labels, row = _first_order(label)
+    subjects = real[np.unique(row, return_index=True)[1]]
+    clash = subjects[row] != real
+    if clash.any():
+        raise InputError(f"{path}: probe {label[clash][0]!r} has two subjects ({subjects[row][clash][0]!r}, "
+                         f"{real[clash][0]!r})")
+    if model is None:  # the k-th line of a (probe, claimed subject): its k-th template
+        _, pair = np.unique(np.stack([row.astype(str), claimed], axis=1), axis=0, return_inverse=True)
+        order = np.argsort(pair, kind="stable")
+        starts = np.flatnonzero(np.r_[True, np.diff(pair[order]) != 0])
+        pair = pair.ravel()
+        occurrence = np.empty(pair.size, int)
+        occurrence[order] = np.arange(pair.size) - np.repeat(starts, np.diff(np.r_[starts, pair.size]))
+        model = occurrence.astype(str)
+    templates, col = np.unique(np.stack([claimed, model], axis=1), axis=0, return_inverse=True)
+    col = col.ravel()
+    cell = row * len(templates) + col
+    if np.unique(cell).size < cell.size:
+        twice = np.flatnonzero(np.bincount(cell)[cell] > 1)[0]
+        raise InputError(f"{path}: probe {label[twice]!r} is compared twice with {claimed[twice]!r} {model[twice]!r}")
+    S = np.full((labels.size, len(templates)), np.nan)
+    S[row, col] = score if higher_is_better else -score
+    return ScoreMatrix(S, subjects, labels, templates[:, 0])

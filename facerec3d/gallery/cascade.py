@@ -14,16 +14,30 @@ one full ICP per enrolled face; this costs one full ICP per shortlisted face).
 Faces off the shortlist score −inf (no match); a gallery no larger than the shortlist passes whole.
 A coarse ICP (few points and iterations) was tried as a middle stage and dropped: on the synthetic
 60-subject protocol it predicted full ICP's best match worse than this screen at ~100× its cost.
+
+`Cascade` is the whole of it over a gallery loaded in an engine (gallery.engine.ShardedGallery): the
+descriptors kept in the gallery's shards, the screen, the shortlist, full ICP on it, and the keypoint screen's
+own gallery; each probe's result is a `CascadeScores` (scores, tiebreak, shortlist).
+
+    cascade = Cascade(CascadeConfig(shortlist=20))
+    probes = engine.prepare(matcher, faces, cascade.config)     # with their depth descriptors
+    results = cascade.search(gallery, probes)                   # [CascadeScores, ...]
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
+from typing import Any, NamedTuple
 
 import numpy as np
 
-from facerec3d.matching.base import Matcher, rank
+from facerec3d.errors import InputError
+from facerec3d.matching.base import GalleryScores, Matcher, Template, rank
 from facerec3d.matching.icp import ICPMatcher
+from facerec3d.matching.keypoints import KeypointMatcher
+from facerec3d.scan import FaceScan
 
 
 SCREENS = ("depth", "keypoints")
@@ -42,7 +56,7 @@ class CascadeConfig:
 
     def __post_init__(self) -> None:
         if self.shortlist < 1 or not 0 < self.keep <= 1:
-            raise ValueError("cascade shortlist must be >= 1 and keep in (0, 1]")
+            raise InputError("cascade shortlist must be >= 1 and keep in (0, 1]")
         if self.screen not in SCREENS:
             raise ValueError(f"unknown cascade screen {self.screen!r}: use one of {SCREENS}")
         if self.cell_mm <= 0 or self.radius_mm <= 0:
@@ -52,7 +66,7 @@ class CascadeConfig:
 def check_cascadable(matcher: Matcher) -> ICPMatcher:
     """The matcher if the cascade applies to it (ICP), else a ValueError."""
     if not isinstance(matcher, ICPMatcher):
-        raise ValueError(f"the cascade works with the icp method, not {matcher.name!r}")
+        raise InputError(f"the cascade works with the icp method, not {matcher.name!r}")
     return matcher
 
 
@@ -94,3 +108,103 @@ def screen_distances(probe: np.ndarray, gallery: np.ndarray, keep: float) -> np.
 def best(scores: np.ndarray, n: int, tiebreak: np.ndarray | None = None) -> np.ndarray:
     """Indices of the n best (highest) scores, ranked as identification ranks them."""
     return rank(scores, tiebreak)[:n]
+
+
+def template_descriptor(template: Template, config: CascadeConfig) -> np.ndarray:
+    """The depth descriptor of an enrolled (ICP) face."""
+    return depth_descriptor(ICPMatcher.gallery_points(template), config)
+
+
+class CascadeScores(NamedTuple):
+    """A probe's result through the cascade: full-ICP scores and tiebreak for the shortlisted gallery entries,
+    −inf (tiebreak 0) for the others; the shortlist's gallery indices, sorted."""
+
+    scores: np.ndarray
+    tiebreak: np.ndarray
+    shortlist: np.ndarray
+
+
+def _descriptors(shard: Any, config: CascadeConfig) -> np.ndarray:
+    """The shard's depth descriptors for `config` (gallery.engine.Shard.derived; made once, kept up to date
+    by gallery updates)."""
+    key = ("cascade", config)
+    if key not in shard.derived:
+        describe = partial(template_descriptor, config=config)
+        shard.derived[key] = describe, np.array([describe(t) for t in shard.templates])
+    return shard.derived[key][1]
+
+
+def _describe(shard: Any, config: CascadeConfig) -> int:
+    return len(_descriptors(shard, config))
+
+
+def _screen(shard: Any, descriptor: np.ndarray, config: CascadeConfig) -> np.ndarray:
+    """Stage 1 on one shard: depth-screen distances (mm²) of a probe descriptor to the shard's faces."""
+    d = _descriptors(shard, config)
+    return screen_distances(descriptor, d, config.keep) if shard.templates else np.zeros(0)
+
+
+class Cascade:
+    """The cascade with these settings over galleries loaded in an engine (module docstring)."""
+
+    def __init__(self, config: CascadeConfig = CascadeConfig()):
+        self.config = config
+        self.screen_gallery = None  # the keypoint screen's gallery (load_screen)
+
+    def probe_descriptor(self, face: FaceScan) -> np.ndarray | None:
+        """What the screen needs of a probe face on the gallery's side: its depth descriptor (None for the
+        keypoint screen, which scores the face against its own gallery)."""
+        return depth_descriptor(face.points, self.config) if self.config.screen == "depth" else None
+
+    def describe(self, gallery: Any) -> None:
+        """Make the depth descriptors of a gallery's shards now rather than at its first cascade probe."""
+        gallery.per_shard([[(_describe, self.config)] * gallery.shards])
+
+    def load_screen(self, engine: Any, faces: Sequence[FaceScan]) -> None:
+        """For the keypoint screen: enrol the gallery faces with the keypoint matcher and load them into the engine
+        (sharded like the gallery). Needs the gallery's faces, so evaluation only."""
+        if self.config.screen == "keypoints":
+            matcher = KeypointMatcher()
+            self.screen_gallery = engine.load(matcher, engine.enroll(matcher, faces))
+
+    def screen_scores(self, engine: Any, faces: Sequence[FaceScan]) -> list[GalleryScores] | None:
+        """The keypoint screen's scores of probe faces against its gallery (None for the depth screen)."""
+        if self.screen_gallery is None:
+            return None
+        return self.screen_gallery.scores(engine.prepare(self.screen_gallery.matcher, faces))
+
+    def shortlists(self, gallery: Any, probes: Sequence[Any],
+                   screen: Sequence[GalleryScores] | None = None) -> list[np.ndarray]:
+        """Each probe's shortlist (gallery indices, sorted): the best of the depth screen, or of `screen`: each
+        probe's (scores, tiebreak) against the whole gallery by another matcher (e.g. `screen_scores`)."""
+        c = self.config
+        if screen is not None:
+            return [np.sort(best(s, c.shortlist, t)) for s, t in screen]
+        if c.screen != "depth":
+            raise ValueError(f"a {c.screen} screen needs that matcher's scores against the gallery (screen=)")
+        if any(p.descriptor is None for p in probes):
+            raise ValueError("cascade probes need depth descriptors: Engine.prepare(..., cascade=config)")
+        rows = gallery.per_shard([[(_screen, p.descriptor, c)] * gallery.shards for p in probes])
+        return [np.sort(best(-np.concatenate(row), c.shortlist)) for row in rows]
+
+    def search(self, gallery: Any, probes: Sequence[Any],
+               screen: Sequence[GalleryScores] | None = None) -> list[CascadeScores]:
+        """Each prepared probe (gallery.engine.Probe) through the cascade against an ICP gallery: screen,
+        shortlist, full ICP on the shortlist."""
+        check_cascadable(gallery.matcher)
+        shortlists = self.shortlists(gallery, probes, screen)
+        out = []
+        for shortlist, (s, t) in zip(shortlists, gallery.scores_at_many(probes, shortlists)):
+            scores, tiebreak = np.full(len(gallery), -np.inf), np.zeros(len(gallery))
+            scores[shortlist], tiebreak[shortlist] = s, t
+            out.append(CascadeScores(scores, tiebreak, shortlist))
+        return out
+
+    @staticmethod
+    def recall(results: Sequence[CascadeScores], probe_subjects: Sequence[str],
+               gallery_subjects: Sequence[str]) -> float | None:
+        """Share of the probes of enrolled subjects whose subject is on their shortlist (None: no such probe)."""
+        enrolled = set(gallery_subjects)
+        hits = [subject in {gallery_subjects[j] for j in r.shortlist}
+                for r, subject in zip(results, probe_subjects) if subject in enrolled]
+        return float(np.mean(hits)) if hits else None

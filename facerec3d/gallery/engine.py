@@ -1,52 +1,36 @@
-"""The matching engine: a gallery sharded over concurrent.futures-style executors, one per shard.
+"""The engine: one set of workers (facerec3d.workers) for all the work of a run, holding galleries sharded over them.
 
     with Engine.create(jobs=4) as engine:            # or Engine.create(scheduler="tcp://host:8786")
+        faces = [o.face for o in engine.preprocess(paths, config, cache=cache)]   # read, preprocess (cached)
         templates = engine.enroll(matcher, faces)
         gallery = engine.load(matcher, templates)     # each shard's templates stay in its worker
         scores, tiebreak = gallery.scores(engine.prepare(matcher, probes))[0]
         gallery.identify(probe_face, k=5, cascade=CascadeConfig())
 
-Executors: `jobs` = 1 runs in this process; more make one single-process `ProcessPoolExecutor` per core,
+Workers: `jobs` = 1 runs in this process; more make one single-process `ProcessPoolExecutor` per core,
 so shard i always lives in process i; a Dask `distributed.Client` (or a scheduler address) gives one
-`ClientExecutor` pinned to each worker. Every shard is loaded once into a module-level cache of its
-worker (`_SHARDS`); a probe is sent to every shard and the per-shard scores are concatenated in gallery
-order, so the results are the same whatever the number or kind of workers.
+`ClientExecutor` pinned to each worker. Reading and preprocessing (`preprocess`), enrolment and probe
+preparation are spread over all of them; the gallery is loaded once as one contiguous shard per worker into a
+module-level cache of that worker (`_SHARDS`); a probe is sent to every shard and the per-shard scores are
+joined in gallery order, so the results are the same whatever the number or kind of workers.
 """
 
 from __future__ import annotations
 
-import os
-import signal
-import sys
 import uuid
-from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import Executor, Future, ProcessPoolExecutor
+from collections.abc import Callable, Hashable, Iterator, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
-from threadpoolctl import ThreadpoolController
 
-from facerec3d.gallery.cascade import CascadeConfig, best, check_cascadable, depth_descriptor, screen_distances
-from facerec3d.matching.base import Matcher, Template, rank
-from facerec3d.preprocess.batch import one_thread_per_process
+from facerec3d.gallery.cascade import Cascade, CascadeConfig, CascadeScores
+from facerec3d.matching.base import GalleryScores, Matcher, Template, merge_shard_scores, rank, shard_scores
+from facerec3d.preprocess.batch import Outcome, preprocess_files
+from facerec3d.preprocess.pipeline import PreprocessConfig
 from facerec3d.scan import FaceScan
-
-
-_THREADPOOLS = ThreadpoolController()  # made once: inspecting the loaded BLAS libraries costs milliseconds
-
-
-class InlineExecutor(Executor):
-    """Runs each call at once in this process (one BLAS thread), for `jobs` = 1."""
-
-    def submit(self, fn, /, *args, **kwargs) -> Future:
-        f: Future = Future()
-        try:
-            with _THREADPOOLS.limit(limits=1):
-                f.set_result(fn(*args, **kwargs))
-        except BaseException as e:  # handed to the caller by f.result()
-            f.set_exception(e)
-        return f
+from facerec3d.workers import Workers
 
 
 @dataclass
@@ -58,17 +42,20 @@ class Probe:
 
 
 @dataclass
-class _Shard:
+class Shard:
+    """One worker's part of a loaded gallery. `derived`: per-template data made on the worker (the cascade's
+    descriptors), by key: (function of a template, its rows), kept up to date when the gallery is updated."""
+
     matcher: Matcher
     templates: list[Template]
-    descriptors: dict[CascadeConfig, np.ndarray] = field(default_factory=dict)
+    derived: dict[Hashable, tuple[Callable[[Template], Any], np.ndarray]] = field(default_factory=dict)
 
 
-_SHARDS: dict[str, _Shard] = {}  # this worker's shards, by key
+_SHARDS: dict[str, Shard] = {}  # this worker's shards, by key
 
 
 def _load(key: str, matcher: Matcher, templates: list[Template]) -> int:
-    _SHARDS[key] = _Shard(matcher, templates)
+    _SHARDS[key] = Shard(matcher, templates)
     return len(templates)
 
 
@@ -76,43 +63,42 @@ def _drop(key: str) -> None:
     _SHARDS.pop(key, None)
 
 
-def _shard(key: str) -> _Shard:
+def _shard(key: str) -> Shard:
     try:
         return _SHARDS[key]
     except KeyError:
         raise RuntimeError(f"gallery shard {key} is not loaded in this worker (did the worker restart?)") from None
 
 
-def _scores(key: str, probe: Any, indices: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+def _on_shard(key: str, fn: Callable, *args: Any) -> Any:
+    """fn(shard, *args) on this worker's shard `key`."""
+    return fn(_shard(key), *args)
+
+
+def _scores(shard: Shard, probe: Any, indices: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """(scores, tiebreak) of a prepared probe against the shard's templates (those at `indices` if given)."""
-    s = _shard(key)
-    templates = s.templates if indices is None else [s.templates[i] for i in indices]
-    scores, tiebreak = s.matcher.scores(probe, templates)
+    templates = shard.templates if indices is None else [shard.templates[i] for i in indices]
+    scores, tiebreak = shard.matcher.scores(probe, templates)
     return scores, np.zeros_like(scores) if tiebreak is None else tiebreak
 
 
-def _partial(key: str, probe: Any) -> np.ndarray:
-    """The shard's partial scores of a prepared probe (Matcher.partial_scores)."""
-    s = _shard(key)
-    return s.matcher.partial_scores(probe, s.templates)
+def _shard_scores(shard: Shard, probe: Any) -> np.ndarray:
+    """The shard's part of a prepared probe's scores (matching.base.shard_scores)."""
+    return shard_scores(shard.matcher, probe, shard.templates)
 
 
-def _screen(key: str, descriptor: np.ndarray, config: CascadeConfig) -> np.ndarray:
-    """Cascade stage 1 on the shard: depth-screen distances (mm²); the shard's descriptors are made once."""
-    s = _shard(key)
-    if config not in s.descriptors:
-        s.descriptors[config] = np.array([depth_descriptor(t.arrays["points"], config) for t in s.templates])
-    return screen_distances(descriptor, s.descriptors[config], config.keep) if s.templates else np.zeros(0)
-
-
-def _init_worker() -> None:
-    """Process-pool worker start: one BLAS thread; on Linux, die with the parent process (PR_SET_PDEATHSIG),
-    so a killed enrolment or identification leaves no orphaned workers."""
-    one_thread_per_process()
-    if sys.platform.startswith("linux"):
-        import ctypes
-
-        ctypes.CDLL(None).prctl(1, signal.SIGKILL)
+def _derive(key: str, base: str, keep: np.ndarray | None, add: list[Template]) -> int:
+    """Load shard `key`: shard `base`'s templates at local indices `keep` (all when None), then `add`. The
+    templates are shared and the derived data reused (made only for `add`); `base` is left as it was."""
+    s = _shard(base)
+    kept = s.templates if keep is None else [s.templates[i] for i in keep]
+    derived = {}
+    for name, (fn, rows) in s.derived.items():
+        new = list(rows if keep is None else rows[keep]) + [fn(t) for t in add]
+        if new:
+            derived[name] = fn, np.array(new)
+    _SHARDS[key] = Shard(s.matcher, kept + list(add), derived)
+    return len(_SHARDS[key].templates)
 
 
 def _enroll(face: FaceScan, matcher: Matcher) -> Template:
@@ -120,80 +106,26 @@ def _enroll(face: FaceScan, matcher: Matcher) -> Template:
 
 
 def _prepare(face: FaceScan, matcher: Matcher, cascade: CascadeConfig | None) -> Probe:
-    depth = cascade is not None and cascade.screen == "depth"
-    return Probe(matcher.prepare(face), depth_descriptor(face.points, cascade) if depth else None)
+    return Probe(matcher.prepare(face), None if cascade is None else Cascade(cascade).probe_descriptor(face))
 
 
-def _call(fn: Callable, item: Any, args: tuple) -> Any:
-    return fn(item, *args)
+class Engine(Workers):
+    """Workers that run a whole run's work and hold its galleries; `create` makes them, `close` shuts them down."""
 
-
-class Engine:
-    """Executors to run work and hold gallery shards on; `create` makes them, `close` shuts them down."""
-
-    def __init__(self, executors: Sequence[Executor], client: Any = None, own_client: bool = False,
-                 addresses: Sequence[str] = ()):
-        """`client`, with its worker `addresses` (one per executor): a Dask client, shut down on `close`
-        when `own_client`; shards are then scattered to their workers rather than sent with the load call."""
-        if not executors:
-            raise ValueError("an engine needs at least one executor")
-        self.executors = list(executors)
-        self._client, self._own_client, self._addresses = client, own_client, list(addresses)
+    def __init__(self, *args: Any, **kwargs: Any):
+        super().__init__(*args, **kwargs)
         self._loaded: list[ShardedGallery] = []
 
-    @classmethod
-    def create(cls, jobs: int | None = None, scheduler: Any = None) -> "Engine":
-        """`jobs` local processes (None: all cores; 1: this process), or the workers of a Dask scheduler
-        (an address such as "tcp://host:8786", or a `distributed.Client`)."""
-        if scheduler is not None:
-            try:
-                from distributed import Client
-            except ImportError:
-                raise ValueError("a Dask scheduler needs dask.distributed: pip install 'facerec3d[distributed]'") \
-                    from None
-            own = not isinstance(scheduler, Client)
-            client = Client(scheduler) if own else scheduler
-            workers = sorted(client.scheduler_info()["workers"])
-            if not workers:
-                if own:
-                    client.close()
-                raise ValueError(f"the Dask scheduler {client.scheduler.address} has no workers")
-            return cls([client.get_executor(workers=[w], allow_other_workers=False, pure=False) for w in workers],
-                       client, own, workers)
-        if jobs is None:
-            jobs = os.cpu_count() or 1
-        if jobs <= 1:
-            return cls([InlineExecutor()])
-        return cls([ProcessPoolExecutor(1, initializer=_init_worker) for _ in range(jobs)])
-
-    def __enter__(self) -> "Engine":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
     def close(self) -> None:
-        """Drop the galleries still loaded, then shut the executors (and an own Dask client) down."""
+        """Drop the galleries still loaded, then shut the workers down."""
         for gallery in list(self._loaded):
             gallery.release()
-        for ex in self.executors:
-            ex.shutdown(wait=True)
-        if self._own_client:
-            self._client.close()
+        super().close()
 
-    @property
-    def workers(self) -> int:
-        return len(self.executors)
-
-    def imap(self, fn: Callable, items: Sequence, *args: Any) -> Iterator[Any]:
-        """fn(item, *args) for each item, spread round-robin over the executors; results in item order."""
-        futures = [self.executors[i % self.workers].submit(_call, fn, item, args) for i, item in enumerate(items)]
-        for f in futures:
-            yield f.result()
-
-    def map(self, fn: Callable, items: Sequence, *args: Any) -> list[Any]:
-        """The list of `imap`."""
-        return list(self.imap(fn, items, *args))
+    def preprocess(self, paths: Sequence[str | Path], config: PreprocessConfig = PreprocessConfig(), *,
+                   cache: str | Path | None = None, intrinsics: str | Path | None = None) -> Iterator[Outcome]:
+        """Read and preprocess scan files on the workers (preprocess.batch.preprocess_files), in order."""
+        return preprocess_files(paths, config, workers=self, cache=cache, intrinsics=intrinsics)
 
     def enroll(self, matcher: Matcher, faces: Sequence[FaceScan]) -> list[Template]:
         """The gallery templates of faces, in parallel."""
@@ -227,6 +159,10 @@ class ShardedGallery:
     def __len__(self) -> int:
         return int(self.bounds[-1])
 
+    @property
+    def shards(self) -> int:
+        return len(self.keys)
+
     def release(self) -> None:
         """Drop the shards from the workers."""
         for f in [ex.submit(_drop, key) for ex, key in zip(self.engine.executors, self.keys)]:
@@ -234,9 +170,42 @@ class ShardedGallery:
         if self in self.engine._loaded:
             self.engine._loaded.remove(self)
 
-    def _per_shard(self, calls: Sequence[Sequence[tuple | None]]) -> list[list[Any]]:
-        """Run calls[p][s] = (fn, *args) (or None: nothing) on shard s's executor, for every probe p."""
-        futures = [[None if c is None else ex.submit(c[0], key, *c[1:])
+    def update(self, add: Sequence[Template] = (), remove: Sequence[int] = ()) -> tuple["ShardedGallery", np.ndarray]:
+        """A new gallery: this one without the entries at gallery indices `remove`, with `add` appended to its
+        smallest shard; and `order`, for each of its entries the index in this gallery (len(self) + j for
+        add[j]). This gallery stays loaded and unchanged (a consistent snapshot for the probes already using
+        it) until released; the workers share the templates between the two, so an update costs only the
+        new templates (and their cascade descriptors), not a reload."""
+        n = len(self)
+        gone = np.unique(np.asarray(remove, dtype=np.int64))
+        if len(gone) and (gone[0] < 0 or gone[-1] >= n):
+            raise IndexError(f"gallery index out of range 0..{n - 1}")
+        kept = [np.setdiff1d(np.arange(a, b), gone) for a, b in zip(self.bounds[:-1], self.bounds[1:])]
+        target = int(np.argmin([len(k) for k in kept]))
+        keys = [f"{uuid.uuid4().hex}-{i}" for i in range(len(self.keys))]
+        order, sizes, futures = [], [], []
+        for i, (ex, key, base, mine, a, b) in enumerate(zip(self.engine.executors, keys, self.keys, kept,
+                                                            self.bounds[:-1], self.bounds[1:])):
+            extra = list(add) if i == target else []
+            keep = None if len(mine) == b - a else mine - a
+            futures.append(ex.submit(_derive, key, base, keep, extra))
+            order += [*mine.tolist(), *range(n, n + len(extra))]
+            sizes.append(len(mine) + len(extra))
+        try:
+            for f in futures:
+                f.result()
+        except BaseException:
+            for f in [ex.submit(_drop, key) for ex, key in zip(self.engine.executors, keys)]:
+                f.result()
+            raise
+        gallery = ShardedGallery(self.engine, self.matcher, keys, np.concatenate([[0], np.cumsum(sizes)]).astype(int))
+        self.engine._loaded.append(gallery)
+        return gallery, np.asarray(order, dtype=np.int64)
+
+    def per_shard(self, calls: Sequence[Sequence[tuple | None]]) -> list[list[Any]]:
+        """Run calls[p][s] = (fn, *args) as fn(shard s, *args) on shard s's worker (None: nothing), all at once;
+        the results in the same layout."""
+        futures = [[None if c is None else ex.submit(_on_shard, key, *c)
                     for c, ex, key in zip(row, self.engine.executors, self.keys)] for row in calls]
         return [[None if f is None else f.result() for f in row] for row in futures]
 
@@ -248,48 +217,44 @@ class ShardedGallery:
             out.append(mine if len(mine) else None)
         return out
 
-    def scores(self, probes: Sequence[Probe]) -> list[tuple[np.ndarray, np.ndarray]]:
+    def scores(self, probes: Sequence[Probe]) -> list[GalleryScores]:
         """(scores (n,), tiebreak (n,)) of each probe against the whole gallery (exhaustive): the shards'
-        partial scores joined, then merged as one gallery (Matcher.merge_scores)."""
-        rows = self._per_shard([[(_partial, p.prepared)] * len(self.keys) for p in probes])
+        scores joined, then merged as one gallery (matching.base.merge_shard_scores)."""
+        rows = self.per_shard([[(_shard_scores, p.prepared)] * self.shards for p in probes])
         out = []
         for row in rows:
-            scores, tiebreak = self.matcher.merge_scores(np.concatenate(row, axis=-1))
-            out.append((scores, np.zeros_like(scores) if tiebreak is None else tiebreak))
+            scores, tiebreak = merge_shard_scores(self.matcher, np.concatenate(row, axis=-1))
+            out.append(GalleryScores(scores, np.zeros_like(scores) if tiebreak is None else tiebreak))
         return out
 
-    def cascade(self, probes: Sequence[Probe], config: CascadeConfig,
-                screen: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
-                ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """(scores, tiebreak, shortlist) of each probe through the cascade: full-ICP scores for the shortlisted
-        gallery indices (sorted), −inf (tiebreak 0) elsewhere. The shortlist is the best of the depth screen,
-        or of `screen`: each probe's (scores, tiebreak) against the whole gallery by another matcher (e.g.
-        a keypoint gallery's `scores`)."""
-        check_cascadable(self.matcher)
-        n = len(self)
-        if screen is None:
-            if config.screen != "depth":
-                raise ValueError(f"a {config.screen} screen needs that matcher's scores against the gallery (screen=)")
-            if any(p.descriptor is None for p in probes):
-                raise ValueError("cascade probes need depth descriptors: Engine.prepare(..., cascade=config)")
-            rows = self._per_shard([[(_screen, p.descriptor, config)] * len(self.keys) for p in probes])
-            shortlists = [np.sort(best(-np.concatenate(row), config.shortlist)) for row in rows]
-        else:
-            shortlists = [np.sort(best(s, config.shortlist, t)) for s, t in screen]
-        calls = [[None if loc is None else (_scores, p.prepared, loc) for loc in self._local(sl)]
-                 for p, sl in zip(probes, shortlists)]
+    def scores_at_many(self, probes: Sequence[Probe], indices: Sequence[Sequence[int]]) -> list[GalleryScores]:
+        """(scores, tiebreak) of each prepared probe against the entries at its gallery indices, in increasing
+        index order (a shortlist; a claimed subject's entries, for verification)."""
+        wanted = [np.unique(np.asarray(i, dtype=np.int64)) for i in indices]
+        calls = [[None if loc is None else (_scores, p.prepared, loc) for loc in self._local(idx)]
+                 for p, idx in zip(probes, wanted)]
         out = []
-        for sl, row in zip(shortlists, self._per_shard(calls)):
-            scores, tiebreak = np.full(n, -np.inf), np.zeros(n)
+        for row in self.per_shard(calls):
             done = [r for r in row if r is not None]
-            if done:
-                scores[sl] = np.concatenate([r[0] for r in done])
-                tiebreak[sl] = np.concatenate([r[1] for r in done])
-            out.append((scores, tiebreak, sl))
+            out.append(GalleryScores(np.concatenate([r[0] for r in done]), np.concatenate([r[1] for r in done]))
+                       if done else GalleryScores(np.zeros(0), np.zeros(0)))
         return out
+
+    def scores_at(self, probe: Probe, indices: Sequence[int]) -> GalleryScores:
+        """`scores_at_many` of one probe."""
+        return self.scores_at_many([probe], [indices])[0]
+
+    def describe(self, config: CascadeConfig) -> None:
+        """Make the shards' cascade descriptors for `config` now rather than on the first cascade probe."""
+        Cascade(config).describe(self)
+
+    def cascade(self, probes: Sequence[Probe], config: CascadeConfig,
+                screen: Sequence[GalleryScores] | None = None) -> list[CascadeScores]:
+        """Each probe through the cascade (gallery.cascade.Cascade.search)."""
+        return Cascade(config).search(self, probes, screen)
 
     def identify(self, face: FaceScan, k: int = 5, cascade: CascadeConfig | None = None) -> list[tuple[int, float]]:
         """The k best gallery entries for a probe face as (gallery index, score), best first."""
         probe = self.engine.prepare(self.matcher, [face], cascade)
-        scores, tiebreak = (self.scores(probe) if cascade is None else self.cascade(probe, cascade))[0][:2]
-        return [(int(i), float(scores[i])) for i in rank(scores, tiebreak)[:k]]
+        result = (self.scores(probe) if cascade is None else self.cascade(probe, cascade))[0]
+        return [(int(i), float(result.scores[i])) for i in rank(result.scores, result.tiebreak)[:k]]

@@ -1,21 +1,26 @@
 """Enrol into, identify against and verify with a gallery store (what `facerec3d enroll / identify / verify` do).
 
-    report = enroll_scans(store, scan_records(["data/"]), make_matcher("icp"), jobs=4)
-    hits = identify_scan(store, "probe.abs.gz", k=5, cascade=CascadeConfig())
-    accepted, score = verify_scan(store, "probe.abs.gz", claim="04200", threshold=-1.0)
+    with Engine.create(jobs=4) as engine:          # or Engine.create(scheduler="tcp://host:8786")
+        report = enroll_scans(store, scan_records(["data/"]), make_matcher("icp"), engine=engine)
+        hits = identify_scan(store, "probe.abs.gz", k=5, cascade=CascadeConfig(), engine=engine)
+    accepted, score, threshold = verify_scan(store, "probe.abs.gz", claim="04200", threshold=-1.0)
+
+Enrolment and identification read and preprocess the scans on the engine's workers too (with the preprocessing
+cache, a folder the workers share); without an engine, everything runs in this process.
 """
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from facerec3d.datasets.catalog import ScanRecord, open_dataset, scan_record
-from facerec3d.evaluation.protocols import split
+from facerec3d.datasets.protocols import split
 from facerec3d.gallery.cascade import CascadeConfig
 from facerec3d.gallery.engine import Engine
-from facerec3d.gallery.store import Entry, GalleryError, GalleryStore
+from facerec3d.gallery.store import AlreadyEnrolled, Entry, GalleryError, GalleryStore
 from facerec3d.io import scan_stem
 from facerec3d.matching.base import Matcher, Template
 from facerec3d.preprocess.batch import preprocess_file
@@ -62,28 +67,44 @@ class EnrolReport:
     failures: list[tuple[str, str]] = field(default_factory=list)
 
 
+def content_hash(path: str | Path) -> str | None:
+    """SHA-256 of a file's bytes (None when it cannot be read): the same scan under another path has the same."""
+    digest = hashlib.sha256()
+    try:
+        with open(path, "rb") as f:
+            while block := f.read(1 << 20):
+                digest.update(block)
+    except OSError:
+        return None
+    return digest.hexdigest()
+
+
 def _enrol_one(record: ScanRecord, config: PreprocessConfig, matcher: Matcher,
-               cache: str | None) -> tuple[Template | None, str | None]:
-    """(template, None) or (None, reason) for one scan: preprocess (cached) and enrol."""
+               cache: str | None) -> tuple[Template | None, str | None, str | None]:
+    """(template, None, content hash) or (None, reason, content hash) for one scan: preprocess (cached) and enrol."""
+    content = content_hash(record.path)
     outcome = preprocess_file(record.path, config, cache)
     if outcome.face is None:
-        return None, outcome.error
+        return None, outcome.error, content
     try:
         template = matcher.enroll(outcome.face)
     except ValueError as e:  # e.g. too few points to enrol
-        return None, str(e)
+        return None, str(e), content
     template.subject, template.scan_id = record.subject, record.scan_id
-    return template, None
+    return template, None, content
 
 
-def enroll_scans(store: GalleryStore, records: Sequence[ScanRecord], matcher: Matcher,
+def enroll_scans(store: GalleryStore, records: Sequence[ScanRecord], matcher: Matcher, *,
                  config: PreprocessConfig = PreprocessConfig(), engine: Engine | None = None,
                  cache: str | Path | None = None, on_result=None) -> EnrolReport:
-    """Preprocess and enrol scans into the store, each in its own transaction as soon as it is ready.
+    """Preprocess and enrol scans into the store, each in its own transaction as soon as it is ready; each scan is
+    read, preprocessed and enrolled in one call on the `engine`'s workers.
 
-    The store must be new or made with these settings. Scans already in it are skipped; a scan that
-    cannot be read, preprocessed or enrolled is recorded as a failure to enrol and the batch goes on.
-    `on_result(source, status)` is called after each scan ("enrolled", "skipped" or the failure reason).
+    The store must be new or made with these settings. Scans already in it (by path, or by content: a copy of
+    an enrolled scan) are skipped, also when another enrolment running at the same time adds them first; a scan
+    that cannot be read, preprocessed or enrolled is recorded as a failure to enrol (its latest, until it enrols)
+    and the batch goes on. `on_result(source, status)` is called after each scan ("enrolled", "skipped" or the
+    failure reason).
     """
     store.bind(config, matcher)
     report = EnrolReport()
@@ -102,15 +123,21 @@ def enroll_scans(store: GalleryStore, records: Sequence[ScanRecord], matcher: Ma
     engine = engine or Engine.create(1)
     try:
         results = engine.imap(_enrol_one, [r for _, r in todo], config, matcher, None if cache is None else str(cache))
-        for (source, _), (template, error) in zip(todo, results):
+        for (source, _), (template, error, content) in zip(todo, results):
+            status = "enrolled"
             if template is None:
                 store.add_failure(source, error)
                 report.failures.append((source, error))
+                status = error
             else:
-                store.add(template, source)
-                report.enrolled += 1
+                try:
+                    store.add(template, source, content)
+                    report.enrolled += 1
+                except AlreadyEnrolled:  # a copy of an enrolled scan, or enrolled meanwhile by another run
+                    report.skipped.append(source)
+                    status = "skipped"
             if on_result:
-                on_result(source, "enrolled" if template is not None else error)
+                on_result(source, status)
     finally:
         if own:
             engine.close()
@@ -118,31 +145,35 @@ def enroll_scans(store: GalleryStore, records: Sequence[ScanRecord], matcher: Ma
 
 
 def load_probe(store: GalleryStore, path: str | Path, config: PreprocessConfig | None = None,
-               cache: str | Path | None = None) -> FaceScan:
-    """A probe scan preprocessed with the gallery's settings; `config`, if given, must be those settings."""
+               cache: str | Path | None = None, *, engine: Engine | None = None) -> FaceScan:
+    """A probe scan preprocessed with the gallery's settings (on the `engine`'s workers when given); `config`, if
+    given, must be those settings."""
     if config is not None:
         store.check_preprocess(config)
-    outcome = preprocess_file(path, store.preprocess_config(), cache)
+    settings = store.preprocess_config()
+    outcome = (preprocess_file(path, settings, cache) if engine is None
+               else list(engine.preprocess([path], settings, cache=cache))[0])
     if outcome.face is None:
         raise GalleryError(f"{path}: {outcome.error}")
     return outcome.face
 
 
-def identify_scan(store: GalleryStore, probe: str | Path, k: int = 5, cascade: CascadeConfig | None = None,
+def identify_scan(store: GalleryStore, probe: str | Path, *, k: int = 5, cascade: CascadeConfig | None = None,
                   config: PreprocessConfig | None = None, matcher: Matcher | None = None, engine: Engine | None = None,
                   cache: str | Path | None = None) -> list[tuple[Entry, float]]:
-    """The k best gallery entries for a probe scan, (entry, score) best first. A `matcher` given must be the
-    gallery's (method and options)."""
+    """The k best gallery entries for a probe scan, (entry, score) best first; the probe is read, preprocessed
+    and matched on the `engine`'s workers (default: this process). A `matcher` given must be the gallery's
+    (method and options)."""
     stored = store.matcher()
     if matcher is not None:
         store.check_matcher(matcher)
-    face = load_probe(store, probe, config, cache)
-    entries = store.entries()
-    if not entries:
-        raise GalleryError(f"{store.path}: the gallery is empty")
     own = engine is None
     engine = engine or Engine.create(1)
     try:
+        face = load_probe(store, probe, config, cache, engine=engine)
+        entries = store.entries()
+        if not entries:
+            raise GalleryError(f"{store.path}: the gallery is empty")
         gallery = engine.load(stored, store.templates(entries))
         hits = gallery.identify(face, k, cascade)
         gallery.release()
@@ -152,11 +183,11 @@ def identify_scan(store: GalleryStore, probe: str | Path, k: int = 5, cascade: C
     return [(entries[i], s) for i, s in hits]
 
 
-def verify_scan(store: GalleryStore, probe: str | Path, claim: str, threshold: float | None = None,
+def verify_scan(store: GalleryStore, probe: str | Path, claim: str, *, threshold: float | None = None,
                 config: PreprocessConfig | None = None, cache: str | Path | None = None) -> tuple[bool, float, float]:
     """(accepted, score, threshold): the probe's best score against the claimed subject's templates, accepted
     when it reaches the threshold (default: DEFAULT_THRESHOLDS of the gallery's method). Methods whose scores
-    are normalised over the gallery (`Matcher.cohort_scores`) score the probe against the whole gallery."""
+    are normalised over the gallery (`matching.base.GalleryNormalised`: `cohort_scores`) score the probe against the whole gallery."""
     matcher = store.matcher()
     if threshold is None:
         if matcher.name not in DEFAULT_THRESHOLDS:

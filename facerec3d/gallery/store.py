@@ -9,18 +9,25 @@ the failures to enrol (ISO/IEC 19795-1 FTE).
 Schema (stdlib sqlite3, WAL journal, foreign keys on):
   meta(key, value)                       "format", "preprocess" (PreprocessConfig.fingerprint()),
                                          "method", "options" (JSON), "state" (JSON attrs of a learnt matcher)
-  entries(id, subject, scan_id, source, method, attrs JSON, nbytes, enrolled_at)
-  arrays(entry → entries.id ON DELETE CASCADE, name, dtype, shape JSON, data BLOB)
-  model_arrays(name, dtype, shape JSON, data BLOB)   what a learnt matcher's fit() kept
-  failures(id, source, reason, failed_at)
-Arrays are stored as raw C-order bytes with their dtype string (e.g. "<f4") and shape — never pickled.
+  entries(id, subject, scan_id, source UNIQUE, content UNIQUE, method, attrs JSON, nbytes, enrolled_at, checksum)
+  arrays(entry → entries.id ON DELETE CASCADE, name, dtype, shape JSON, data BLOB, checksum)
+  model_arrays(name, dtype, shape JSON, data BLOB, checksum)   what a learnt matcher's fit() kept
+  failures(id, source UNIQUE, reason, failed_at)     the latest failure of each source not enrolled since
+Arrays are stored as raw C-order bytes with their dtype string (e.g. "<f4") and shape — never pickled — and
+the SHA-256 of all three, checked on reading (as is each entry's, of its subject, scan id, source, method and
+attributes), so damaged bytes are refused, naming the entry, rather than matched; templates are also checked
+for what compiled matching relies on (matching.checks). `content` is the SHA-256 of the scan file an entry was
+enrolled from: the same scan under another path is a duplicate.
 Each enrolment (an entry and its arrays) is one transaction, so a crash or kill mid-enrolment leaves every
 earlier enrolment intact and the file readable (SQLite rolls the unfinished one back on the next open).
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import json
+import math
 import sqlite3
 import time
 from collections.abc import Iterator, Sequence
@@ -33,29 +40,35 @@ import numpy as np
 
 from facerec3d.errors import FaceRec3DError
 from facerec3d.matching.base import Matcher, Template
+from facerec3d.matching.checks import check_template
 from facerec3d.matching.registry import make_matcher
 from facerec3d.preprocess.pipeline import PreprocessConfig
 
-FORMAT = "facerec3d-gallery-1"
+FORMAT = "facerec3d-gallery-2"
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS entries (
     id INTEGER PRIMARY KEY AUTOINCREMENT, subject TEXT, scan_id TEXT, source TEXT NOT NULL UNIQUE,
-    method TEXT NOT NULL, attrs TEXT NOT NULL, nbytes INTEGER NOT NULL, enrolled_at REAL NOT NULL);
+    content TEXT UNIQUE, method TEXT NOT NULL, attrs TEXT NOT NULL, nbytes INTEGER NOT NULL, enrolled_at REAL NOT NULL,
+    checksum TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS arrays (
     entry INTEGER NOT NULL REFERENCES entries(id) ON DELETE CASCADE, name TEXT NOT NULL,
-    dtype TEXT NOT NULL, shape TEXT NOT NULL, data BLOB NOT NULL, PRIMARY KEY (entry, name));
+    dtype TEXT NOT NULL, shape TEXT NOT NULL, data BLOB NOT NULL, checksum TEXT NOT NULL, PRIMARY KEY (entry, name));
 CREATE TABLE IF NOT EXISTS model_arrays (name TEXT PRIMARY KEY, dtype TEXT NOT NULL, shape TEXT NOT NULL,
-    data BLOB NOT NULL);
-CREATE TABLE IF NOT EXISTS failures (id INTEGER PRIMARY KEY AUTOINCREMENT, source TEXT NOT NULL,
+    data BLOB NOT NULL, checksum TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS failures (id INTEGER PRIMARY KEY AUTOINCREMENT, source TEXT NOT NULL UNIQUE,
     reason TEXT NOT NULL, failed_at REAL NOT NULL);
 CREATE INDEX IF NOT EXISTS entries_subject ON entries(subject);
 """
 
 
 class GalleryError(FaceRec3DError):
-    """A gallery store cannot be used as asked (missing, not a store, or made with other settings)."""
+    """A gallery store cannot be used as asked (missing, not a store, damaged, or made with other settings)."""
+
+
+class AlreadyEnrolled(GalleryError):
+    """The source, or a scan with the same content, is already enrolled."""
 
 
 @dataclass(frozen=True)
@@ -70,17 +83,45 @@ class Entry:
     enrolled_at: float
 
 
-def encode_array(a: np.ndarray) -> tuple[str, str, bytes]:
-    """(dtype string, JSON shape, raw C-order bytes) of a numeric or boolean array."""
+def _checksum(*parts: str | None, data: bytes = b"") -> str:
+    """SHA-256 of text fields (as SQLite's TEXT columns give them back) and bytes."""
+    return hashlib.sha256(json.dumps([None if p is None else str(p) for p in parts]).encode() + data).hexdigest()
+
+
+def encode_array(a: np.ndarray) -> tuple[str, str, bytes, str]:
+    """(dtype string, JSON shape, raw C-order bytes, checksum) of a numeric or boolean array."""
     a = np.asarray(a)
     if a.dtype.hasobject or a.dtype.kind not in "biufc":
         raise ValueError(f"cannot store arrays of dtype {a.dtype}")
-    return a.dtype.str, json.dumps(list(a.shape)), np.ascontiguousarray(a).tobytes()
+    dtype, shape, data = a.dtype.str, json.dumps(list(a.shape)), np.ascontiguousarray(a).tobytes()
+    return dtype, shape, data, _checksum(dtype, shape, data=data)
 
 
-def decode_array(dtype: str, shape: str, data: bytes) -> np.ndarray:
-    """The writable array of `encode_array`'s output."""
-    return np.frombuffer(bytearray(data), dtype=np.dtype(dtype)).reshape(json.loads(shape))
+def decode_array(dtype: str, shape: str, data: bytes, checksum: str) -> np.ndarray:
+    """The writable array of `encode_array`'s output; ValueError (the reason) when the row is damaged."""
+    if not isinstance(data, bytes) or _checksum(str(dtype), str(shape), data=data) != checksum:
+        raise ValueError("checksum mismatch (damaged bytes)")
+    try:
+        dims, dt = json.loads(shape), np.dtype(dtype)
+    except (TypeError, ValueError):
+        raise ValueError(f"bad dtype {dtype!r} or shape {shape!r}"[:200]) from None
+    if dt.kind not in "biufc" or not isinstance(dims, list) or not all(type(d) is int and d >= 0 for d in dims) \
+            or dt.itemsize * math.prod(dims) != len(data):
+        raise ValueError(f"dtype {dtype} and shape {dims} do not fit {len(data)} bytes"[:200])
+    return np.frombuffer(bytearray(data), dtype=dt).reshape(dims)
+
+
+def _sqlite_errors(method):
+    """Errors of SQLite (a locked, damaged or vanished file) become GalleryError naming the store."""
+
+    @functools.wraps(method)
+    def wrapper(self, *args, **kwargs):
+        try:
+            return method(self, *args, **kwargs)
+        except sqlite3.Error as e:
+            raise GalleryError(f"{self.path}: {e}") from None
+
+    return wrapper
 
 
 class GalleryStore:
@@ -133,25 +174,31 @@ class GalleryStore:
         return None if row is None else row[0]
 
     # ------------------------------------------------------------------ settings
+    @_sqlite_errors
     def bind(self, preprocess: PreprocessConfig, matcher: Matcher) -> None:
         """Record the preprocessing and matcher settings in a new store, or check that they are the stored ones."""
-        if self._meta("method") is None:
-            arrays, attrs = matcher.state()
-            with self._transaction():
+        with self._transaction():  # one writer at a time: two enrolments into a new store bind it once
+            if self._meta("method") is None:
+                arrays, attrs = matcher.state()
                 self._db.executemany("INSERT INTO meta VALUES (?, ?)", [
                     ("preprocess", preprocess.fingerprint()), ("method", matcher.name),
                     ("options", json.dumps(matcher.options(), sort_keys=True)),
                     ("state", json.dumps(attrs, sort_keys=True))])
-                self._db.executemany("INSERT INTO model_arrays VALUES (?, ?, ?, ?)",
+                self._db.executemany("INSERT INTO model_arrays VALUES (?, ?, ?, ?, ?)",
                                      [(name, *encode_array(a)) for name, a in arrays.items()])
-            return
+                return
         self.check_preprocess(preprocess)
         self.check_matcher(matcher)
 
+    @_sqlite_errors
     def preprocess_config(self) -> PreprocessConfig:
         """The preprocessing settings the gallery was enrolled with."""
-        return PreprocessConfig.from_dict(json.loads(self._require("preprocess")))
+        try:
+            return PreprocessConfig.from_dict(json.loads(self._require("preprocess")), self.path)
+        except ValueError as e:  # not JSON, or settings this version refuses
+            raise GalleryError(f"{self.path}: damaged preprocessing settings ({e})") from None
 
+    @_sqlite_errors
     def check_preprocess(self, preprocess: PreprocessConfig) -> None:
         """Refuse scans preprocessed with settings other than the gallery's."""
         stored = self._require("preprocess")
@@ -161,6 +208,7 @@ class GalleryStore:
             raise GalleryError(f"{self.path}: the probe is preprocessed differently from the gallery "
                                f"(differs in {', '.join(diff)}); use the gallery's settings")
 
+    @_sqlite_errors
     def check_matcher(self, matcher: Matcher) -> None:
         """Refuse a matcher whose method or options are not the gallery's."""
         method, options = self._require("method"), json.loads(self._require("options"))
@@ -168,11 +216,16 @@ class GalleryStore:
             raise GalleryError(f"{self.path}: the gallery was enrolled with method {method!r} and options "
                                f"{options}, not {matcher.name!r} with {matcher.options()}")
 
+    @_sqlite_errors
     def matcher(self) -> Matcher:
         """The matcher the gallery was enrolled with (method, options and what it learnt)."""
         matcher = make_matcher(self._require("method"), json.loads(self._require("options")))
-        rows = self._db.execute("SELECT name, dtype, shape, data FROM model_arrays").fetchall()
-        arrays = {name: decode_array(*rest) for name, *rest in rows}
+        arrays = {}
+        for name, *rest in self._db.execute("SELECT name, dtype, shape, data, checksum FROM model_arrays"):
+            try:
+                arrays[name] = decode_array(*rest)
+            except ValueError as e:
+                raise GalleryError(f"{self.path}: the matcher's learnt array {name!r} is damaged: {e}") from None
         state = json.loads(self._require("state"))
         if arrays or state:
             matcher.set_state(arrays, state)
@@ -185,32 +238,40 @@ class GalleryStore:
         return value
 
     # ------------------------------------------------------------------ entries
-    def add(self, template: Template, source: str) -> int:
-        """Store one template (one transaction); returns its id. A source already enrolled is an error."""
+    @_sqlite_errors
+    def add(self, template: Template, source: str, content: str | None = None) -> int:
+        """Store one template (one transaction) and clear the source's failure to enrol, if any; returns its
+        id. `content`: a hash of the scan file's bytes. AlreadyEnrolled when the source, or the content, is."""
         arrays = [(name, *encode_array(a)) for name, a in template.arrays.items()]
-        try:
-            with self._transaction():
-                cur = self._db.execute(
-                    "INSERT INTO entries (subject, scan_id, source, method, attrs, nbytes, enrolled_at) "
-                    "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                    (template.subject, template.scan_id, source, template.method, json.dumps(template.attrs),
-                     template.nbytes, time.time()))
-                entry = cur.lastrowid
-                self._db.executemany("INSERT INTO arrays VALUES (?, ?, ?, ?, ?)", [(entry, *a) for a in arrays])
-        except sqlite3.IntegrityError:
-            raise GalleryError(f"{source}: already enrolled in {self.path}") from None
+        with self._transaction():
+            twin = self._db.execute("SELECT id, source FROM entries WHERE source = ? OR content = ?",
+                                    (source, content)).fetchone()
+            if twin is not None:
+                same = "" if twin[1] == source else f" (the same scan as {twin[1]})"
+                raise AlreadyEnrolled(f"{source}: already enrolled in {self.path} as entry {twin[0]}{same}")
+            fields = (template.subject, template.scan_id, source, template.method, json.dumps(template.attrs))
+            cur = self._db.execute(
+                "INSERT INTO entries (subject, scan_id, source, method, attrs, content, nbytes, enrolled_at, checksum) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)", (*fields, content, template.nbytes, time.time(), _checksum(*fields)))
+            entry = cur.lastrowid
+            self._db.executemany("INSERT INTO arrays VALUES (?, ?, ?, ?, ?, ?)", [(entry, *a) for a in arrays])
+            self._db.execute("DELETE FROM failures WHERE source = ?", (source,))
         return int(entry)
 
+    @_sqlite_errors
     def add_failure(self, source: str, reason: str) -> None:
-        """Record a failure to enrol (the scan could not be read or preprocessed)."""
+        """Record a failure to enrol (the scan could not be read or preprocessed): the source's latest one."""
         with self._transaction():
-            self._db.execute("INSERT INTO failures (source, reason, failed_at) VALUES (?, ?, ?)",
+            self._db.execute("INSERT INTO failures (source, reason, failed_at) VALUES (?, ?, ?) ON CONFLICT (source) "
+                             "DO UPDATE SET reason = excluded.reason, failed_at = excluded.failed_at",
                              (source, reason, time.time()))
 
+    @_sqlite_errors
     def sources(self) -> set[str]:
         """The sources (file paths) already enrolled."""
         return {r[0] for r in self._db.execute("SELECT source FROM entries")}
 
+    @_sqlite_errors
     def entries(self, subject: str | None = None) -> list[Entry]:
         """Entries in enrolment order (of one subject when given)."""
         sql = "SELECT id, subject, scan_id, source, nbytes, enrolled_at FROM entries"
@@ -218,17 +279,35 @@ class GalleryStore:
                                 () if subject is None else (subject,))
         return [Entry(*r) for r in rows]
 
+    @_sqlite_errors
     def templates(self, entries: Sequence[Entry] | None = None) -> list[Template]:
-        """The templates of these entries (default all), in the same order."""
+        """The templates of these entries (default all), in the same order, each checked (its arrays' checksums,
+        and what compiled matching relies on); GalleryError naming the entry when one is damaged."""
         entries = self.entries() if entries is None else entries
         out = []
         for e in entries:
-            method, attrs = self._db.execute("SELECT method, attrs FROM entries WHERE id = ?", (e.id,)).fetchone()
-            rows = self._db.execute("SELECT name, dtype, shape, data FROM arrays WHERE entry = ?", (e.id,))
-            out.append(Template(e.subject, e.scan_id, method, {n: decode_array(*rest) for n, *rest in rows},
-                                json.loads(attrs)))
+            method, attrs, checksum = self._db.execute("SELECT method, attrs, checksum FROM entries WHERE id = ?",
+                                                       (e.id,)).fetchone()
+            rows = self._db.execute("SELECT name, dtype, shape, data, checksum FROM arrays WHERE entry = ?", (e.id,))
+            try:
+                what = "entry"
+                if _checksum(e.subject, e.scan_id, e.source, method, attrs) != checksum:
+                    raise ValueError("checksum mismatch (damaged subject, scan id, source, method or attributes)")
+                arrays = {}
+                for name, *rest in rows:
+                    what = f"array {name!r}"
+                    arrays[name] = decode_array(*rest)
+                what = "template"
+                template = Template(e.subject, e.scan_id, method, arrays, json.loads(attrs))
+                check_template(template)
+            except ValueError as error:
+                raise GalleryError(f"{self.path}: entry {e.id} (subject {e.subject}, scan {e.scan_id}, {e.source}) is "
+                                   f"damaged: {what}: {error}; remove it (gallery {self.path} remove {e.scan_id}) "
+                                   "and enrol its scan again") from None
+            out.append(template)
         return out
 
+    @_sqlite_errors
     def remove(self, ident: str) -> int:
         """Delete the entries of subject `ident`, or else the entry with scan id `ident`; returns how many."""
         with self._transaction():
@@ -237,10 +316,12 @@ class GalleryStore:
                 n = self._db.execute("DELETE FROM entries WHERE scan_id = ?", (ident,)).rowcount
         return n
 
+    @_sqlite_errors
     def failures(self) -> list[tuple[str, str]]:
         """(source, reason) of each recorded failure to enrol."""
         return list(self._db.execute("SELECT source, reason FROM failures ORDER BY id"))
 
+    @_sqlite_errors
     def stats(self) -> dict:
         """Counts, sizes and settings of the gallery."""
         n, subjects, nbytes = self._db.execute(

@@ -7,6 +7,7 @@ Yaw turns about y, pitch about x, roll about z; angles in degrees.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 
 def rotation_from_euler(yaw: float = 0.0, pitch: float = 0.0, roll: float = 0.0) -> np.ndarray:
@@ -31,12 +32,8 @@ def rotation_between(R1: np.ndarray, R2: np.ndarray) -> float:
 
 
 def rigid_fit(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rigid motion (R, t) with target ≈ R · source + t (Arun et al. 1987; chapter §8.6.1).
-
-    R comes from the SVD of the cross-covariance of the centred point sets;
-    a reflection (det = -1) is corrected by flipping the sign of the last
-    singular vector. t = ḡ − R p̄. Optional per-pair weights.
-    """
+    """Least-squares rigid motion (R, t) with target ≈ R · source + t (Arun et al. 1987; chapter §8.6.1), optionally
+    with per-pair weights: the cross-covariance of the centred point sets, then `rigid_from_covariance`."""
     P = np.asarray(source, dtype=np.float64)
     G = np.asarray(target, dtype=np.float64)
     if P.shape != G.shape or P.ndim != 2 or P.shape[1] != 3 or len(P) < 3:
@@ -46,13 +43,27 @@ def rigid_fit(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None
     p_bar = w @ P
     g_bar = w @ G
     H = (P - p_bar).T @ ((G - g_bar) * w[:, None])
+    return rigid_from_covariance(np.ascontiguousarray(H), p_bar, g_bar)
+
+
+@njit(cache=True)
+def rigid_from_covariance(H, p_bar, g_bar):  # pragma: no cover - compiled
+    """Arun et al.'s SVD solution (R, t) from the cross-covariance H = Σ (p − p̄)(g − ḡ)ᵀ and the centroids p̄, ḡ
+    (chapter §8.6.1): with H = U Σ Vᵀ, R = V Uᵀ, a reflection (det = −1) fixed by flipping the sign of the last
+    singular vector; t = ḡ − R p̄. Compiled, so the ICP loop calls it too."""
     U, _, Vt = np.linalg.svd(H)
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
-    R = Vt.T @ D @ U.T
+    V = Vt.T
+    if np.linalg.det(V @ U.T) < 0.0:
+        V[:, 2] = -V[:, 2]
+    R = V @ U.T
     return R, g_bar - R @ p_bar
 
 
-def apply(R: np.ndarray, t: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """R · p + t for each row p of points."""
-    return np.asarray(points) @ np.asarray(R).T + np.asarray(t)
+@njit(cache=True)
+def rigid_from_covariances(H, p_bar, g_bar):  # pragma: no cover - compiled
+    """`rigid_from_covariance` of each of T problems: H (T, 3, 3), p̄ and ḡ (T, 3) → R (T, 3, 3), t (T, 3)."""
+    R = np.empty_like(H)
+    t = np.empty_like(p_bar)
+    for k in range(H.shape[0]):
+        R[k], t[k] = rigid_from_covariance(np.ascontiguousarray(H[k]), p_bar[k], g_bar[k])
+    return R, t

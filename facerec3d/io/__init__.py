@@ -27,6 +27,7 @@ from facerec3d.io.abs import read_abs, write_abs
 from facerec3d.io.arrays import read_numpy, write_npz
 from facerec3d.io.depth import Intrinsics, find_intrinsics, read_depth_image, write_depth_image
 from facerec3d.io.bnt import load_landmarks_lm3, read_bnt, write_bnt, write_lm3
+from facerec3d.io.common import scan_stem, scan_suffix
 from facerec3d.io.mesh import read_mesh, read_ply, write_ply
 from facerec3d.io.text import read_text_points
 from facerec3d.scan import FaceScan
@@ -43,16 +44,20 @@ WRITERS = {".abs": write_abs, ".abs.gz": write_abs, ".bnt": write_bnt, ".ply": w
 SUPPORTED_SUFFIXES = tuple(READERS)
 
 
-def scan_suffix(path: str | Path) -> str:
-    """The format suffix of a file name, lower case (`.abs.gz` counts as one suffix)."""
-    name = Path(path).name.lower()
-    return ".abs.gz" if name.endswith(".abs.gz") else Path(name).suffix
-
-
-def scan_stem(path: str | Path) -> str:
-    """The file name without its format suffix: `02463d452` for `02463d452.abs.gz`."""
-    name = Path(path).name
-    return name[: len(name) - len(scan_suffix(path))]
+def unique_stems(paths) -> list[str]:
+    """A distinct output name for each path: its `scan_stem`, or `stem-2`, `stem-3`, ... where an earlier path (or
+    another path's stem) has it, so that `a/face.ply` and `b/face.ply` do not overwrite one another (compared
+    without case, as some file systems do)."""
+    stems = [scan_stem(p) for p in paths]
+    own, used, out = {s.lower() for s in stems}, set(), []
+    for stem in stems:
+        name, k = stem, 1
+        while name.lower() in used or name != stem and name.lower() in own:
+            k += 1
+            name = f"{stem}-{k}"
+        used.add(name.lower())
+        out.append(name)
+    return out
 
 
 def load_scan(path: str | Path, intrinsics: "Intrinsics | str | Path | None" = None) -> FaceScan:
@@ -96,7 +101,7 @@ def save_scan(scan: FaceScan, path: str | Path) -> None:
 
 
 __all__ = [
-    "SUPPORTED_SUFFIXES", "load_scan", "save_scan", "load_landmarks_lm3", "scan_stem", "scan_suffix",
+    "SUPPORTED_SUFFIXES", "load_scan", "save_scan", "load_landmarks_lm3", "scan_stem", "scan_suffix", "unique_stems",
     "read_abs", "write_abs", "read_bnt", "write_bnt", "write_lm3", "read_ply", "write_ply", "read_mesh",
     "DEPTH_SUFFIXES", "read_text_points", "read_numpy", "write_npz", "Intrinsics", "find_intrinsics", "read_depth_image",
     "write_depth_image",

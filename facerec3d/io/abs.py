@@ -77,6 +77,10 @@ def _parse_decimals(buf, out):  # pragma: no cover - compiled
         n += 1
 
 
+CHUNK = 1 << 20  # bytes of text parsed at a time: memory stays bounded whatever the header or the body holds
+WHITESPACE = b" \t\n\r\x0b\x0c"
+
+
 def read_abs(path: str | Path) -> FaceScan:
     """A FRGC `.abs` / `.abs.gz` range image: points in mm, grid (row, column) of each valid pixel."""
     with open_binary(path) as raw:
@@ -89,28 +93,59 @@ def read_abs(path: str | Path) -> FaceScan:
                 raise ScanFormatError(path, "truncated or bad header (need 'R rows', 'C columns', 'pixels ...' lines)")
             rows, cols = _parse_header(path, header)
             n = check_grid_size(path, rows, cols)
-            limit = 4 * n * MAX_VALUE_CHARS
-            body = f.read(limit + 1)
+            flags, xyz = _read_body(path, f, n, f"{rows}×{cols}")
         except (EOFError, zlib.error, gzip.BadGzipFile) as e:
             raise ScanFormatError(path, f"corrupt or truncated gzip data ({e})") from None
-    if len(body) > limit:
-        raise ScanFormatError(path, f"far more data than {rows}×{cols} pixels need")
-    values = np.empty(4 * n + 1)
-    count = _parse_decimals(np.frombuffer(body, dtype=np.uint8), values)
-    if count >= 0:
-        values = values[:count]
-    else:  # a token the fast parser does not read exactly (exponent, > 15 digits, or not a number)
-        try:
-            values = np.array(body.split(), dtype=np.float64)
-        except ValueError:
-            raise ScanFormatError(path, "non-numeric value in the pixel data") from None
-    if len(values) != 4 * n:
-        raise ScanFormatError(path, f"expected {4 * n} values for {rows}×{cols} pixels, found {len(values)}")
-    flags = values[:n].reshape(rows, cols)
-    if not np.isin(flags, (0.0, 1.0)).all():
+    xyz = np.moveaxis(xyz.reshape(3, rows, cols), 0, -1)
+    return grid_scan(path, xyz, flags.reshape(rows, cols))
+
+
+def _read_body(path: str | Path, f, n: int, size: str) -> tuple[np.ndarray, np.ndarray]:
+    """(valid flags (n,), X, Y, Z blocks (3, n)) streamed from the body, CHUNK bytes at a time, so that a header
+    announcing more pixels than the body holds, or a body of garbage, is refused without reading it all."""
+    flags = np.empty(n, dtype=bool)
+    xyz = np.empty(3 * n)
+    limit = 4 * n * MAX_VALUE_CHARS
+    filled, consumed, carry, bad_flags = 0, 0, b"", False
+    while True:
+        data = f.read(CHUNK)
+        consumed += len(data)
+        if consumed > limit:
+            raise ScanFormatError(path, f"far more data than {size} pixels need")
+        text = carry + data
+        cut = max(text.rfind(c) for c in WHITESPACE) + 1 if data else len(text)  # the last token may go on
+        text, carry = text[:cut], text[cut:]
+        if len(carry) > MAX_VALUE_CHARS:
+            raise ScanFormatError(path, "non-numeric value in the pixel data")
+        values = _parse_text(path, text)
+        if filled + len(values) > 4 * n:
+            raise ScanFormatError(path, f"expected {4 * n} values for {size} pixels, found more")
+        head = values[: max(n - filled, 0)]  # the flags' share of this chunk
+        bad_flags |= not np.isin(head, (0.0, 1.0)).all()
+        flags[filled : filled + len(head)] = head == 1.0
+        rest = values[len(head) :]  # and the X, Y, Z blocks'
+        start = max(filled - n, 0)
+        xyz[start : start + len(rest)] = rest
+        filled += len(values)
+        if not data:
+            break
+    if filled != 4 * n:
+        raise ScanFormatError(path, f"expected {4 * n} values for {size} pixels, found {filled}")
+    if bad_flags:
         raise ScanFormatError(path, "flags must be 0 or 1")
-    xyz = np.moveaxis(values[n:].reshape(3, rows, cols), 0, -1)
-    return grid_scan(path, xyz, flags == 1.0)
+    return flags, xyz
+
+
+def _parse_text(path: str | Path, text: bytes) -> np.ndarray:
+    """The whitespace-separated numbers of a piece of the body (the fast parser, else NumPy's)."""
+    values = np.empty(len(text) // 2 + 1)
+    count = _parse_decimals(np.frombuffer(text, dtype=np.uint8), values)
+    if count >= 0:
+        return values[:count]
+    try:  # a token the fast parser does not read exactly (exponent, > 15 digits, or not a number)
+        return np.array(text.split(), dtype=np.float64)
+    except ValueError:
+        raise ScanFormatError(path, "non-numeric value in the pixel data") from None
 
 
 def _format(values: np.ndarray, fmt: str) -> str:
@@ -123,7 +158,12 @@ def write_abs(scan: FaceScan, path: str | Path) -> None:
     xyz, valid = range_image(scan, path)
     rows, cols = valid.shape
     xyz = np.where(valid[..., None], xyz, INVALID)
-    parts = [f"{rows} rows\n{cols} columns\npixels (flag X Y Z):", _format(valid.ravel().astype(int), "%d")]
-    parts += [_format(xyz[..., k].ravel(), "%.6f") for k in range(3)]
-    data = ("\n".join(parts) + "\n").encode("ascii")
-    Path(path).write_bytes(gzip.compress(data, compresslevel=6) if str(path).lower().endswith(".gz") else data)
+    blocks = [(valid.ravel().astype(int), "%d")] + [(xyz[..., k].ravel(), "%.6f") for k in range(3)]
+    gz = str(path).lower().endswith(".gz")
+    with gzip.open(path, "wb", compresslevel=6) if gz else open(path, "wb") as f:
+        f.write(f"{rows} rows\n{cols} columns\npixels (flag X Y Z):".encode("ascii"))
+        for values, fmt in blocks:  # written a piece at a time: memory stays small whatever the size
+            for start in range(0, len(values), CHUNK // 16):
+                f.write((" " if start else "\n").encode("ascii")
+                        + _format(values[start : start + CHUNK // 16], fmt).encode("ascii"))
+        f.write(b"\n")

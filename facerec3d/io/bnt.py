@@ -67,13 +67,15 @@ def write_bnt(scan: FaceScan, path: str | Path, texture_name: str = "") -> None:
     xyz, valid = range_image(scan, path)
     rows, cols = valid.shape
     if max(rows, cols) > 0xFFFF:
-        raise ValueError(f"{path}: a .bnt grid is at most 65535×65535, not {rows}×{cols}")
+        raise ScanFormatError(path, f"a .bnt grid is at most 65535×65535, not {rows}×{cols}")
     zmin = min(INVALID_Z, float(xyz[valid][:, 2].min(initial=np.inf)) - 1.0)
     blocks = np.zeros((5, rows, cols))
     blocks[:3] = np.moveaxis(np.where(valid[..., None], xyz, zmin), -1, 0)
     name = texture_name.encode("latin-1")
     header = HEADER.pack(rows, cols, zmin, len(name)) + name + COUNT.pack(blocks.size)
-    Path(path).write_bytes(header + blocks[:, ::-1].astype("<f8").tobytes())
+    with open(path, "wb") as f:
+        f.write(header)
+        np.ascontiguousarray(blocks[:, ::-1], dtype="<f8").tofile(f)
     if scan.landmarks:
         write_lm3(scan.landmarks, Path(path).with_suffix(".lm3"))
 

@@ -11,7 +11,21 @@ import numpy as np
 from facerec3d.errors import ScanFormatError
 from facerec3d.scan import FaceScan
 
-MAX_POINTS = 20_000_000  # refuse files announcing more points or pixels than this (absurd sizes)
+
+def scan_suffix(path: str | Path) -> str:
+    """The format suffix of a file name, lower case (`.abs.gz` counts as one suffix)."""
+    name = Path(path).name.lower()
+    return ".abs.gz" if name.endswith(".abs.gz") else Path(name).suffix
+
+
+def scan_stem(path: str | Path) -> str:
+    """The file name without its format suffix: `02463d452` for `02463d452.abs.gz`."""
+    name = Path(path).name
+    return name[: len(name) - len(scan_suffix(path))]
+
+
+MAX_POINTS = 4_000_000  # refuse files announcing more points or pixels than this: a 2000×2000 range image, more
+#                          than face scanners and depth cameras deliver, keeps every command under 1 GB of memory
 
 
 def describe(error: BaseException) -> str:
@@ -105,5 +119,5 @@ def point_scan(
 def range_image(scan: FaceScan, path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """(xyz (R, C, 3), valid (R, C)) of a scan about to be written as a range image; ValueError without a grid."""
     if scan.grid is None:
-        raise ValueError(f"{path}: writing a range-image format needs a scan with a grid")
+        raise ScanFormatError(path, "writing a range-image format needs a scan with a grid")
     return scan.to_range_image()

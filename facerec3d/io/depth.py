@@ -32,12 +32,11 @@ from pathlib import Path
 import numpy as np
 
 from facerec3d.errors import ScanFormatError
-from facerec3d.io.common import MAX_POINTS, grid_scan, library_errors
+from facerec3d.io.common import MAX_POINTS, grid_scan, library_errors, scan_suffix
 from facerec3d.scan import FaceScan
 
 INTRINSICS_NAME = "intrinsics.json"
 INTRINSICS_SEARCH_DEPTH = 3  # parent folders searched for intrinsics.json, beyond the frame's own
-MAX_PIXELS = 4096 * 4096  # a depth frame larger than this is refused before decoding (no sensor delivers it)
 
 
 @dataclass(frozen=True)
@@ -146,8 +145,6 @@ def scan_to_frame(scan: FaceScan, intrinsics: Intrinsics) -> np.ndarray:
 
 def _read_pixels(path: str | Path) -> np.ndarray:
     """The (H, W) array of stored depth units of a PNG, TIFF or .npy file, checked before decoding."""
-    from facerec3d.io import scan_suffix
-
     if scan_suffix(path) == ".npy":
         with library_errors(path, "NumPy depth image"):
             a = np.load(path, mmap_mode="r", allow_pickle=False)
@@ -157,8 +154,8 @@ def _read_pixels(path: str | Path) -> np.ndarray:
         with library_errors(path, "depth image"):
             with Image.open(path) as im:
                 w, h = im.size
-                if w * h > MAX_PIXELS:
-                    raise ScanFormatError(path, f"absurd size {h}x{w} for a depth frame (over {MAX_PIXELS} pixels)")
+                if w * h > MAX_POINTS:
+                    raise ScanFormatError(path, f"absurd size {h}x{w} for a depth frame (over {MAX_POINTS} pixels)")
                 if im.mode not in ("I;16", "I;16B", "I;16L", "I", "L", "F"):
                     raise ScanFormatError(path, f"not a depth image: Pillow mode {im.mode} (need 16-bit grey)")
                 a = np.asarray(im)

@@ -103,7 +103,8 @@ def write_ply(scan: FaceScan, path: str | Path, binary: bool = True) -> None:
     with open(path, "wb") as f:
         f.write(header.encode("ascii"))
         if binary:
-            f.write(vertex.tobytes() + face.tobytes())
+            vertex.tofile(f)
+            face.tofile(f)
         else:
             np.savetxt(f, vertex, fmt=["%.17g" if kinds[c.dtype.kind] == "<f8" else "%d" for c in columns.values()])
             np.savetxt(f, np.column_stack([face["n"], face["vertex_indices"]]), fmt="%d")

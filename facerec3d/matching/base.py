@@ -1,17 +1,22 @@
-"""The matcher interface shared by ICP (§8.6), PCA (§8.7), LDA (§8.8) and curvature matchers.
+"""The matcher interface shared by ICP (§8.6), PCA (§8.7), LDA (§8.8), curvature (§8.9) and the §8.10 matchers.
 
 Scikit-learn-like and small:
 
-    matcher.fit(training_scans, subjects)          # learnt matchers only
-    matcher.save("model.npz"); load_matcher("model.npz")   # settings + what fit learnt (registry)
+    matcher = make_matcher("icp", options)         # registry; matcher.options() gives the options back
+    matcher.fit(training_scans, subjects)          # learnt matchers only (needs_training); learnt state ends in _
+    matcher.save("model.npz"); load_matcher("model.npz")   # settings + what fit learnt (state / set_state)
     gallery = [matcher.enroll(scan) for scan in gallery_scans]
-    probe = matcher.prepare(scan)                  # optional: done by score() when given a FaceScan
+    probe = matcher.prepare(scan)                  # the matcher's probe type; done by score() when given a FaceScan
+    matcher.score(probe, gallery[i]); matcher.scores(probe, gallery)   # similarity; (scores, tiebreak or None)
     matcher.identify(probe, gallery, k=5)          # [(gallery index, score), ...] best first
     matcher.verify(probe, gallery[i], threshold)   # score >= threshold
 
 Scores are similarities: higher means more alike (ICP gives −MSE in mm²).
 A `Template` is what a matcher keeps of a scan; it saves to .npz without
-pickle.
+pickle. Matchers whose scores are normalised over the gallery scored with
+the probe (region ICP, fusion) are `GalleryNormalised`: a sharded gallery
+(gallery.engine) scores them shard by shard through `shard_scores` and
+`merge_shard_scores`.
 """
 
 from __future__ import annotations
@@ -21,15 +26,20 @@ from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, is_dataclass
 from os import PathLike
-from typing import Any
+from typing import Any, Generic, NamedTuple, TypeVar
 
 import numpy as np
 
 from facerec3d.config import from_dict
+from facerec3d.errors import SettingsError
 from facerec3d.scan import FaceScan
 
 #: Relative score difference under which two scores count as tied (then the tiebreak decides).
 TIE_TOLERANCE = 1e-9
+
+#: A matcher's probe type: what `prepare` returns (ICP: ProbeData; PCA, LDA: a feature vector; by default
+#: the probe's gallery Template).
+P = TypeVar("P")
 
 _META_KEY = "__template__"
 _RESERVED = (_META_KEY, "file", "allow_pickle")  # np.savez's own argument names
@@ -68,6 +78,13 @@ class Template:
         return cls(meta["subject"], meta["scan_id"], meta["method"], arrays, meta["attrs"])
 
 
+class GalleryScores(NamedTuple):
+    """A probe's scores against a gallery, one per entry: similarity and tiebreak (0 where the method has none)."""
+
+    scores: np.ndarray
+    tiebreak: np.ndarray
+
+
 def rank(scores: np.ndarray, tiebreak: np.ndarray | None = None, tolerance: float = TIE_TOLERANCE) -> np.ndarray:
     """Indices ordering scores best (highest) first; runs of near-ties (relative difference < tolerance between
     neighbours) are ordered by the larger tiebreak."""
@@ -82,8 +99,9 @@ def rank(scores: np.ndarray, tiebreak: np.ndarray | None = None, tolerance: floa
     return order[np.lexsort((-np.asarray(tiebreak, dtype=np.float64)[order], group))]
 
 
-class Matcher(ABC):
-    """Base class of face matchers. Subclasses set `name` and implement `enroll` and `score`.
+class Matcher(ABC, Generic[P]):
+    """Base class of face matchers. Subclasses set `name` and implement `enroll` and `score`; those with their
+    own probe type `P` implement `prepare` and declare it (`class ICPMatcher(Matcher[ProbeData])`).
 
     A matcher with settings keeps them in `self.config`, an instance of its
     dataclass `config_class`, given as the first argument of its constructor.
@@ -102,9 +120,14 @@ class Matcher(ABC):
         """A matcher whose config has these fields changed (a method config file's table)."""
         if not options:
             return cls()
+        source = getattr(options, "source", None)  # the settings file, when read with config.read_settings
         if cls.config_class is None:
-            raise ValueError(f"method {cls.name!r} takes no options (given {sorted(options)})")
-        return cls(from_dict(cls.config_class, dict(options)))
+            raise SettingsError(source, None, f"method {cls.name!r} takes no options (given {sorted(options)})")
+        config = from_dict(cls.config_class, options)
+        try:
+            return cls(config)
+        except SettingsError as e:  # settings of a fusion's members
+            raise e.within(source) from None
 
     def options(self) -> dict[str, Any]:
         """The config as JSON-able fields (what `from_options` takes back)."""
@@ -136,44 +159,78 @@ class Matcher(ABC):
     def enroll(self, scan: FaceScan) -> Template:
         """The gallery template of a scan, with whatever search structures matching needs."""
 
-    def prepare(self, scan: FaceScan) -> Any:
+    def prepare(self, scan: FaceScan) -> P:
         """The probe-side representation of a scan (by default its gallery template)."""
         return self.enroll(scan)
 
-    def _probe(self, probe: FaceScan | Any) -> Any:
+    def _probe(self, probe: FaceScan | P) -> P:
+        """A probe as `prepare` makes it, from a scan or an already prepared probe."""
         return self.prepare(probe) if isinstance(probe, FaceScan) else probe
 
     @abstractmethod
-    def score(self, probe: FaceScan | Any, template: Template) -> float:
+    def score(self, probe: FaceScan | P, template: Template) -> float:
         """Similarity of a probe (scan or prepared) to a template; higher is more similar."""
 
-    def scores(self, probe: FaceScan | Any, templates: Sequence[Template]) -> tuple[np.ndarray, np.ndarray | None]:
+    def scores(self, probe: FaceScan | P, templates: Sequence[Template]) -> tuple[np.ndarray, np.ndarray | None]:
         """(scores (n,), tiebreak (n,) or None) of a probe against many templates."""
         p = self._probe(probe)
         return np.array([self.score(p, t) for t in templates], dtype=np.float64), None
 
-    # A gallery split into shards (gallery.engine) is scored shard by shard: `partial_scores` on each shard,
-    # concatenated along the last axis, then `merge_scores` once, so that matchers whose scores depend on the
-    # whole gallery (normalisation over it: region ICP, fusion) give the same scores however it is split.
-    @property
-    def n_partial(self) -> int:
-        """Rows of `partial_scores`."""
-        return 2
-
-    def partial_scores(self, probe: FaceScan | Any, templates: Sequence[Template]) -> np.ndarray:
-        """(n_partial, n): what can be computed template by template (by default the scores and tiebreak)."""
-        s, t = self.scores(probe, templates)
-        return np.stack([s, np.zeros_like(s) if t is None else np.asarray(t, dtype=np.float64)])
-
-    def merge_scores(self, partial: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """(scores, tiebreak) of a whole gallery from its partial scores."""
-        return partial[0], partial[1]
-
-    def identify(self, probe: FaceScan | Any, gallery: Sequence[Template], k: int = 5) -> list[tuple[int, float]]:
+    def identify(self, probe: FaceScan | P, gallery: Sequence[Template], k: int = 5) -> list[tuple[int, float]]:
         """The k best gallery entries as (index, score), best first; near-ties broken by the larger tiebreak."""
         s, tiebreak = self.scores(probe, gallery)
         return [(int(i), float(s[i])) for i in rank(s, tiebreak)[:k]]
 
-    def verify(self, probe: FaceScan | Any, template: Template, threshold: float) -> bool:
+    def verify(self, probe: FaceScan | P, template: Template, threshold: float) -> bool:
         """Accept the claimed identity when the score reaches the threshold."""
         return bool(self.score(probe, template) >= threshold)
+
+
+class GalleryNormalised(ABC):
+    """Mixin of matchers whose scores are normalised over the gallery scored with the probe (region ICP, fusion).
+
+    A gallery split into shards (gallery.engine) is scored shard by shard: `partial_scores` on each shard,
+    concatenated along the last axis, then `merge_scores` once, so that the scores are the same however the
+    gallery is split. Verification scores the probe against the whole gallery (`cohort_scores`)."""
+
+    cohort_scores = True
+
+    @property
+    @abstractmethod
+    def n_partial(self) -> int:
+        """Rows of `partial_scores`."""
+
+    @abstractmethod
+    def partial_scores(self, probe: Any, templates: Sequence[Template]) -> np.ndarray:
+        """(n_partial, n): what can be computed template by template."""
+
+    @abstractmethod
+    def merge_scores(self, partial: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """(scores, tiebreak) of a whole gallery from its partial scores."""
+
+    def scores(self, probe: Any, templates: Sequence[Template]) -> tuple[np.ndarray, np.ndarray | None]:
+        return self.merge_scores(self.partial_scores(probe, templates))
+
+    def score(self, probe: Any, template: Template) -> float:
+        """The template's score among a gallery of one (degenerate for the normalisations: use `scores`)."""
+        return float(self.scores(probe, [template])[0][0])
+
+
+def shard_rows(matcher: Matcher) -> int:
+    """Rows of `shard_scores` for this matcher."""
+    return matcher.n_partial if isinstance(matcher, GalleryNormalised) else 2
+
+
+def shard_scores(matcher: Matcher, probe: Any, templates: Sequence[Template]) -> np.ndarray:
+    """(shard_rows, n): a probe's scores against one shard of a gallery, to be joined with the other shards' along
+    the last axis and merged by `merge_shard_scores`: a GalleryNormalised matcher's partial scores, or the
+    scores and tiebreak (0 where none) of any other."""
+    if isinstance(matcher, GalleryNormalised):
+        return matcher.partial_scores(probe, templates)
+    s, t = matcher.scores(probe, templates)
+    return np.stack([s, np.zeros_like(s) if t is None else np.asarray(t, dtype=np.float64)])
+
+
+def merge_shard_scores(matcher: Matcher, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """(scores, tiebreak) of a whole gallery from its shards' `shard_scores`, joined."""
+    return matcher.merge_scores(rows) if isinstance(matcher, GalleryNormalised) else (rows[0], rows[1])

@@ -53,7 +53,7 @@ class CurvatureMap(NamedTuple):
     mask: np.ndarray  # (d,) bool
 
 
-class CurvatureMatcher(Matcher):
+class CurvatureMatcher(Matcher[CurvatureMap]):
     """Shape-index maps compared inside the rigid face region (chapter §8.9); see the module docstring."""
 
     name = "curvature"
@@ -79,9 +79,6 @@ class CurvatureMatcher(Matcher):
 
     def prepare(self, scan: FaceScan) -> CurvatureMap:
         return self.curvature_map(scan)
-
-    def _probe(self, probe: FaceScan | CurvatureMap) -> CurvatureMap:
-        return self.prepare(probe) if isinstance(probe, FaceScan) else probe
 
     def scores(self, probe: FaceScan | CurvatureMap, templates: Sequence[Template]) -> tuple[np.ndarray, None]:
         p = self._probe(probe)

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from facerec3d.preprocess.resample import ResampleConfig
+from facerec3d.preprocess.resample import ResampleConfig, depth_map
 from facerec3d.scan import FaceScan
 
 FILLS = ("nearest", "mean")
@@ -64,13 +64,7 @@ class DepthMapConfig:
 def depth_image(scan: FaceScan, grid: ResampleConfig | None = None) -> np.ndarray:
     """(size, size) depth z (mm) of a preprocessed face on the resampling grid (default: the preprocessing's
     default, §8.5.6), NaN where there is no surface."""
-    grid = grid or ResampleConfig()
-    if scan.grid is None or scan.grid_shape != (grid.size, grid.size):
-        raise ValueError(f"not a preprocessed face: grid {scan.grid_shape}, expected the {grid.size}×{grid.size} "
-                         "resampling grid (§8.5.6)")
-    z = np.full((grid.size, grid.size), np.nan)
-    z[scan.grid[:, 0], scan.grid[:, 1]] = scan.points[:, 2]
-    return z
+    return depth_map(scan, grid or ResampleConfig())[0]
 
 
 def fill_nearest(z: np.ndarray) -> np.ndarray:

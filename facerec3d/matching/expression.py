@@ -1,7 +1,7 @@
 """Expression handling by masking (chapter §8.10.3): where does an expression move the face?
 
 The morphable model's 53 ARKit expression blendshapes (ICT-FaceKit,
-`facerec3d.datasets.model`) give each vertex's displacement at full weight.
+`facerec3d.facemodel`) give each vertex's displacement at full weight.
 A vertex's *mobility* is the largest displacement any one blendshape gives it
 (mm). Mapped into the frontal frame of preprocessed faces (nose tip at the
 origin, looking along +z, 1 mm grid) it marks the expression-driven parts
@@ -24,7 +24,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.spatial import cKDTree
 
-from facerec3d.datasets.model import load_model
+from facerec3d.facemodel import load_model
 
 
 @dataclass(frozen=True, eq=False)

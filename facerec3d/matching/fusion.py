@@ -1,28 +1,8 @@
-"""Score normalisation and fusion (chapter §8.10: fusion across regions and across methods).
+"""The fusion matcher (chapter §8.10: fusion across methods): member methods' scores, normalised per probe over
+the gallery and combined by a rule (`matching.normalisation`).
 
-Normalisations (Jain, Nandakumar & Ross 2005, "Score normalization in
-multimodal biometric systems") map one source's similarity scores to a
-common scale, with parameters estimated from a reference sample — in the
-matchers here, the probe's own scores against the gallery it is compared
-with (a per-probe, cohort-style normalisation that needs no training):
-
-  * min-max: (s − min) / (max − min), in [0, 1];
-  * z-score: (s − mean) / std;
-  * tanh:    ½ (tanh(0.01 (s − μ) / σ) + 1), in (0, 1), with μ, σ the mean and
-    std ("tanh") or Hampel's robust estimates ("tanh-hampel");
-  * none.
-
-Non-finite scores (an ICP that found no match: −inf) count as the worst finite
-score of the sample. Rules combine k sources' normalised scores for n
-templates (a k × n matrix): sum, product (needs min-max or tanh, which are
-non-negative), weighted sum, and the rank-level votes of Faltemier, Bowyer &
-Flynn 2008 ("A region ensemble for 3-D face recognition"): Borda count
-(each source gives n − 1 − rank points, or top − rank for its `top` best
-only: their modified Borda) and consensus voting (the number of sources
-that rank a template first; the Borda count breaks ties).
-
-`FusionMatcher` ("fusion") combines member methods built by name through the
-registry, e.g. ICP and region ICP, or ICP with PCA / LDA.
+`FusionMatcher` ("fusion") combines member methods built by name (`matching.methods`: every method but fusion),
+e.g. ICP and region ICP, or ICP with PCA / LDA. Its template packs the members' templates into one.
 """
 
 from __future__ import annotations
@@ -32,96 +12,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.stats import rankdata
 
-from facerec3d.matching.base import Matcher, Template
+from facerec3d.errors import SettingsError
+from facerec3d.matching.base import GalleryNormalised, Matcher, Template, merge_shard_scores, shard_rows, shard_scores
+from facerec3d.matching.methods import make_method
+from facerec3d.matching.normalisation import check_fusion, fuse
 from facerec3d.scan import FaceScan
-
-NORMALISATIONS = ("none", "min-max", "z-score", "tanh", "tanh-hampel")
-RULES = ("sum", "product", "weighted-sum", "borda", "consensus")
-
-
-def hampel_location_scale(x: np.ndarray, quantiles: tuple[float, float, float] = (0.7, 0.85, 0.95),
-                          iterations: int = 10) -> tuple[float, float]:
-    """Hampel M-estimates (μ, σ) of a sample: deviations d = x − μ are weighted by ψ(d)/d with Hampel's
-    three-part redescending ψ, whose knees a ≤ b ≤ c are these quantiles of |x − median| (Jain et al. 2005:
-    70 %, 85 %, 95 %); points beyond c get weight 0. σ is the weighted RMS deviation."""
-    x = np.asarray(x, dtype=np.float64)
-    a, b, c = np.quantile(np.abs(x - np.median(x)), quantiles)
-    mu = float(np.median(x))
-    w = np.ones_like(x)
-    for _ in range(iterations):
-        d = np.abs(x - mu)
-        w = np.where(d <= a, 1.0, np.where(d <= b, a / np.maximum(d, 1e-300),
-                     np.where(d <= c, a * (c - d) / (np.maximum(c - b, 1e-300) * np.maximum(d, 1e-300)), 0.0)))
-        if w.sum() <= 0:
-            break
-        mu = float(np.sum(w * x) / w.sum())
-    return mu, float(np.sqrt(np.sum(w * (x - mu) ** 2) / max(w.sum(), 1e-300)))
-
-
-def normalise(scores: np.ndarray, method: str, reference: np.ndarray | None = None) -> np.ndarray:
-    """Scores (n,) on a common scale, parameters from `reference` (default: the scores themselves).
-    A degenerate reference (all equal) maps every score to 0 (z-score) or 0.5 (min-max, tanh)."""
-    if method not in NORMALISATIONS:
-        raise ValueError(f"unknown normalisation {method!r}: use one of {NORMALISATIONS}")
-    s = np.asarray(scores, dtype=np.float64)
-    ref = s if reference is None else np.asarray(reference, dtype=np.float64)
-    finite = ref[np.isfinite(ref)]
-    if len(finite) == 0:
-        return np.zeros_like(s)
-    s = np.where(np.isfinite(s), s, np.where(s > 0, finite.max(), finite.min()))
-    if method == "none":
-        return s
-    if method == "min-max":
-        lo, hi = finite.min(), finite.max()
-        return (s - lo) / (hi - lo) if hi > lo else np.full_like(s, 0.5)
-    mu, sd = hampel_location_scale(finite) if method == "tanh-hampel" else (finite.mean(), finite.std())
-    if sd <= 0:
-        return np.zeros_like(s) if method == "z-score" else np.full_like(s, 0.5)
-    z = (s - mu) / sd
-    return z if method == "z-score" else 0.5 * (np.tanh(0.01 * z) + 1.0)
-
-
-def borda(scores: np.ndarray, top: int = 0) -> np.ndarray:
-    """Borda points (n,) from k sources' scores (k, n): a source gives n − 1 − rank points (rank 0 = its best;
-    ties share the average rank), or with top > 0 only max(top − rank, 0)."""
-    S = np.atleast_2d(np.asarray(scores, dtype=np.float64))
-    S = np.where(np.isnan(S), -np.inf, S)
-    ranks = rankdata(-S, method="average", axis=1) - 1.0
-    points = np.maximum(top - ranks, 0.0) if top > 0 else S.shape[1] - 1.0 - ranks
-    return points.sum(axis=0)
-
-
-def fuse(scores: np.ndarray, rule: str = "sum", normalisation: str = "z-score",
-         weights: Sequence[float] = (), top: int = 0) -> tuple[np.ndarray, np.ndarray | None]:
-    """(fused scores (n,), tiebreak (n,) or None) of k sources' similarity scores (k, n) for n templates.
-    Each source is normalised over its own n scores first (the vote rules use ranks and ignore it)."""
-    S = np.atleast_2d(np.asarray(scores, dtype=np.float64))
-    check_fusion(rule, normalisation, weights, len(S))
-    if rule == "borda":
-        return borda(S, top), None
-    if rule == "consensus":
-        best = np.nanmax(np.where(np.isnan(S), -np.inf, S), axis=1, keepdims=True)
-        return (S == best).sum(axis=0).astype(np.float64), borda(S, top)
-    N = np.stack([normalise(row, normalisation) for row in S])
-    if rule == "sum":
-        return N.sum(axis=0), None
-    if rule == "product":
-        return N.prod(axis=0), None
-    return np.asarray(weights, dtype=np.float64) @ N, None
-
-
-def check_fusion(rule: str, normalisation: str, weights: Sequence[float], n_sources: int) -> None:
-    """Raise ValueError for settings `fuse` would refuse (checked when a config is made)."""
-    if rule not in RULES:
-        raise ValueError(f"unknown fusion rule {rule!r}: use one of {RULES}")
-    if normalisation not in NORMALISATIONS:
-        raise ValueError(f"unknown normalisation {normalisation!r}: use one of {NORMALISATIONS}")
-    if rule == "product" and normalisation not in ("min-max", "tanh", "tanh-hampel"):
-        raise ValueError("the product rule needs a non-negative normalisation: min-max, tanh or tanh-hampel")
-    if rule == "weighted-sum" and len(weights) != n_sources:
-        raise ValueError(f"weighted-sum needs one weight per source: {n_sources} sources, {len(weights)} weights")
 
 
 # ----------------------------------------------------------------------------- sub-templates
@@ -150,10 +46,10 @@ class FusionConfig:
     """Fusion of member methods (§8.10; Jain et al. 2005). Scores are normalised per probe over the gallery
     it is compared with, so a fused score is relative to the templates scored together."""
 
-    members: tuple[str, ...] = ("icp", "region-icp")  # method names (registry)
+    members: tuple[str, ...] = ("icp", "region-icp")  # method names (matching.methods)
     member_options: dict[str, dict[str, Any]] = field(default_factory=dict)  # method name -> its config table
-    normalisation: str = "z-score"  # one of NORMALISATIONS (z-score: the robust default of Jain et al. 2005)
-    rule: str = "sum"  # one of RULES (sum: Kittler et al. 1998's most robust rule)
+    normalisation: str = "z-score"  # one of normalisation.NORMALISATIONS (z-score: the robust default of Jain et al. 2005)
+    rule: str = "sum"  # one of normalisation.RULES (sum: Kittler et al. 1998's most robust rule)
     weights: tuple[float, ...] = ()  # one per member, for rule = "weighted-sum"
     top: int = 0  # Borda points only for each source's `top` best (0 = all), rules borda / consensus
 
@@ -165,20 +61,22 @@ class FusionConfig:
         check_fusion(self.rule, self.normalisation, self.weights, len(self.members))
 
 
-class FusionMatcher(Matcher):
+class FusionMatcher(GalleryNormalised, Matcher[list]):
     """Score-level fusion of member methods (§8.10): each member scores the probe against the gallery, the
     scores are normalised per probe and combined by the rule. `score` of one template is that template's
     fused score among a gallery of one (degenerate for the normalisations): use `scores` on a gallery."""
 
     name = "fusion"
     config_class = FusionConfig
-    cohort_scores = True  # normalised over the gallery scored with the probe
 
     def __init__(self, config: FusionConfig = FusionConfig()):
-        from facerec3d.matching.registry import make_matcher
-
         self.config = config
-        self.members = [make_matcher(m, config.member_options.get(m)) for m in config.members]
+        self.members: list[Matcher] = []
+        for m in config.members:
+            try:
+                self.members.append(make_method(m, config.member_options.get(m)))
+            except SettingsError as e:
+                raise e.within(section=f"member_options.{m}" if m in config.member_options else "members") from None
 
     @property
     def needs_training(self) -> bool:
@@ -212,23 +110,18 @@ class FusionMatcher(Matcher):
 
     @property
     def n_partial(self) -> int:
-        return sum(m.n_partial for m in self.members)
+        return sum(shard_rows(m) for m in self.members)
 
     def partial_scores(self, probe: FaceScan | list, templates: Sequence[Template]) -> np.ndarray:
-        """The members' partial scores, stacked (Σ members' n_partial, n)."""
+        """The members' shard scores, stacked (Σ members' shard_rows, n)."""
         p = self._probe(probe)
         parts = [unpack(t) for t in templates]
-        return np.concatenate([m.partial_scores(p[k], [q[k] for q in parts]) for k, m in enumerate(self.members)])
+        return np.concatenate([shard_scores(m, p[k], [q[k] for q in parts]) for k, m in enumerate(self.members)])
 
     def merge_scores(self, partial: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """Each member's scores merged over the whole gallery, then normalised and fused."""
-        bounds = np.cumsum([0] + [m.n_partial for m in self.members])
-        S = np.stack([m.merge_scores(partial[a:b])[0] for m, a, b in zip(self.members, bounds[:-1], bounds[1:])])
+        bounds = np.cumsum([0] + [shard_rows(m) for m in self.members])
+        S = np.stack([merge_shard_scores(m, partial[a:b])[0]
+                      for m, a, b in zip(self.members, bounds[:-1], bounds[1:])])
         c = self.config
         return fuse(S, c.rule, c.normalisation, c.weights, c.top)
-
-    def scores(self, probe: FaceScan | list, templates: Sequence[Template]) -> tuple[np.ndarray, np.ndarray | None]:
-        return self.merge_scores(self.partial_scores(probe, templates))
-
-    def score(self, probe: FaceScan | list, template: Template) -> float:
-        return float(self.scores(probe, [template])[0][0])

@@ -33,6 +33,7 @@ import numpy as np
 from scipy.ndimage import maximum_filter, uniform_filter
 from scipy.spatial.distance import cdist
 
+from facerec3d.geometry.transforms import rigid_from_covariances
 from facerec3d.matching.base import Matcher, Template
 from facerec3d.scan import FaceScan
 
@@ -61,10 +62,8 @@ def _grid_images(face: FaceScan) -> tuple[np.ndarray, np.ndarray]:
     """(H, W, 3) points image (0 where invalid) and (H, W) validity of a gridded face."""
     if face.grid is None:
         raise ValueError("keypoints need a face on a grid (a preprocessed face)")
-    xyz = np.zeros((*face.grid_shape, 3))
-    valid = np.zeros(face.grid_shape, bool)
-    xyz[face.grid[:, 0], face.grid[:, 1]] = face.points
-    valid[face.grid[:, 0], face.grid[:, 1]] = True
+    xyz, valid = face.to_range_image()
+    xyz[~valid] = 0.0
     return xyz, valid
 
 
@@ -139,12 +138,8 @@ def match_keypoints(p_points: np.ndarray, p_desc: np.ndarray, g_points: np.ndarr
     triples = np.argsort(rng.random((config.ransac_iterations, len(P))), axis=1)[:, :3]  # distinct per row
     a, b = P[triples], G[triples]  # (T, 3, 3)
     a_bar, b_bar = a.mean(1, keepdims=True), b.mean(1, keepdims=True)
-    U, _, Vt = np.linalg.svd(np.swapaxes(a - a_bar, 1, 2) @ (b - b_bar))
-    V = np.swapaxes(Vt, 1, 2)
-    flip = np.linalg.det(V @ np.swapaxes(U, 1, 2)) < 0
-    V[flip, :, 2] *= -1
-    R = V @ np.swapaxes(U, 1, 2)
-    t = b_bar[:, 0] - np.einsum("tij,tj->ti", R, a_bar[:, 0])
+    H = np.ascontiguousarray(np.swapaxes(a - a_bar, 1, 2) @ (b - b_bar))
+    R, t = rigid_from_covariances(H, np.ascontiguousarray(a_bar[:, 0]), np.ascontiguousarray(b_bar[:, 0]))
     res = np.linalg.norm(np.einsum("tij,nj->tni", R, P) + t[:, None] - G, axis=2)  # (T, M)
     inl = res <= config.inlier_mm
     best = int(np.argmax(inl.sum(1)))
@@ -152,7 +147,7 @@ def match_keypoints(p_points: np.ndarray, p_desc: np.ndarray, g_points: np.ndarr
     return n, float(np.sqrt(np.mean(res[best, inl[best]] ** 2))) if n else np.inf
 
 
-class KeypointMatcher(Matcher):
+class KeypointMatcher(Matcher[Template]):
     """Keypoint matching (§8.10.2): score = number of geometrically consistent descriptor matches,
     tiebreak = −their RMS residual (mm). Fast enough to shortlist a gallery before ICP."""
 

@@ -25,13 +25,12 @@ Only the probe is cut into regions: each region's points are aligned by ICP
 (`facerec3d.matching.icp`, the same compiled loop) to the whole gallery face,
 whose template is the ICP template. A region's score is −MSE (mm²); a region
 with fewer than `min_points` points scores −inf (the worst). The regions' scores
-are fused over the gallery by `fusion.fuse` (normalise per probe, then sum,
+are fused over the gallery by `normalisation.fuse` (normalise per probe, then sum,
 product, weighted sum, Borda count or consensus voting).
 """
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -39,10 +38,10 @@ from typing import NamedTuple
 import numpy as np
 
 from facerec3d.geometry.normals import estimate_normals
-from facerec3d.matching.base import Matcher, Template
+from facerec3d.matching.base import GalleryNormalised, Matcher, Template
 from facerec3d.matching.expression import expression_mobility
-from facerec3d.matching.fusion import check_fusion, fuse
 from facerec3d.matching.icp import GalleryIndex, ICPConfig, ICPMatcher, ProbeData
+from facerec3d.matching.normalisation import check_fusion, fuse
 from facerec3d.scan import FaceScan
 
 NAMED_REGIONS = ("nose", "eyes-forehead", "rigid")
@@ -59,8 +58,8 @@ class RegionICPConfig:
     rigid_mobility: float = 4.0  # the "rigid" region: model mobility at most this (§8.10.3)
     expression_mask: float | None = None  # drop probe points moving more than this in any expression; None = off
     min_points: int = 100  # a region with fewer probe points scores −inf
-    normalisation: str = "z-score"  # fusion.NORMALISATIONS; per probe over the gallery
-    rule: str = "sum"  # fusion.RULES (Faltemier et al. 2008: borda or consensus for a committee)
+    normalisation: str = "z-score"  # normalisation.NORMALISATIONS; per probe over the gallery
+    rule: str = "sum"  # normalisation.RULES (Faltemier et al. 2008: borda or consensus for a committee)
     weights: tuple[float, ...] = ()  # one per region (named regions first, then the committee), weighted-sum
     top: int = 0  # Borda points only for each region's `top` best ranks (0 = all)
     icp: ICPConfig = field(default_factory=ICPConfig)  # each region's ICP (§8.6.1)
@@ -121,22 +120,21 @@ class RegionProbe(NamedTuple):
     regions: list[ProbeData | None]
 
 
-class RegionICPMatcher(Matcher):
+class RegionICPMatcher(GalleryNormalised, Matcher[RegionProbe]):
     """Region ICP (§8.10.1): regions of the probe matched to the whole gallery face, scores fused per probe.
     Expression handling (§8.10.3): masking by the morphable model's expression mobility (module docstring).
     `score` of one template is its fused score among a gallery of one: use `scores` on a gallery."""
 
     name = "region-icp"
     config_class = RegionICPConfig
-    cohort_scores = True  # normalised over the gallery scored with the probe
 
     def __init__(self, config: RegionICPConfig = RegionICPConfig()):
         self.config = config
         self._icp = ICPMatcher(config.icp)
 
     def enroll(self, scan: FaceScan) -> Template:
-        t = GalleryIndex.from_scan(scan, self.config.icp).to_template(scan.meta.subject, scan.meta.scan_id)
-        return dataclasses.replace(t, method=self.name)
+        return GalleryIndex.from_scan(scan, self.config.icp).to_template(scan.meta.subject, scan.meta.scan_id,
+                                                                          self.name)
 
     def prepare(self, scan: FaceScan) -> RegionProbe:
         cfg = self.config
@@ -171,10 +169,3 @@ class RegionICPMatcher(Matcher):
         """The regions' scores fused over the whole gallery."""
         c = self.config
         return fuse(partial, c.rule, c.normalisation, c.weights, c.top)
-
-    def scores(self, probe: FaceScan | RegionProbe,
-               templates: Sequence[Template]) -> tuple[np.ndarray, np.ndarray | None]:
-        return self.merge_scores(self.partial_scores(probe, templates))
-
-    def score(self, probe: FaceScan | RegionProbe, template: Template) -> float:
-        return float(self.scores(probe, [template])[0][0])

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
+from facerec3d.errors import InputError
 from facerec3d.matching.base import Matcher, Template
 from facerec3d.matching.depthmap import DepthMapConfig, depth_window, fill_nearest
 from facerec3d.scan import FaceScan
@@ -123,16 +124,16 @@ class LDAConfig:
             raise ValueError("pca_share must be in (0, 1]")
 
 
-class _SubspaceMatcher(Matcher):
+class _SubspaceMatcher(Matcher[np.ndarray]):
     """Features y = Pᵀ(x − m) of the depth-map vector x; subclasses learn m and P in `fit`."""
 
     config: PCAConfig | LDAConfig
 
     def __init__(self, config: PCAConfig | LDAConfig | None = None) -> None:
         self.config = self.config_class() if config is None else config
-        self.mean: np.ndarray | None = None  # (d,) mm: training mean depth map
-        self.projection: np.ndarray | None = None  # (d, k)
-        self.scale: np.ndarray | None = None  # (k,) standard deviations of the training features
+        self.mean_: np.ndarray | None = None  # (d,) mm: training mean depth map
+        self.projection_: np.ndarray | None = None  # (d, k)
+        self.scale_: np.ndarray | None = None  # (k,) standard deviations of the training features
 
     @property
     def needs_training(self) -> bool:
@@ -143,7 +144,7 @@ class _SubspaceMatcher(Matcher):
         trained matchers only)."""
         z, valid = depth_window(scan, self.config.depth)
         if self.config.depth.fill == "mean":
-            return np.where(valid.ravel(), z.ravel(), self.mean)
+            return np.where(valid.ravel(), z.ravel(), self.mean_)
         return fill_nearest(z).ravel()
 
     def _training_matrix(self, scans: Sequence[FaceScan]) -> np.ndarray:
@@ -156,23 +157,23 @@ class _SubspaceMatcher(Matcher):
         return np.where(np.isnan(Z), mean, Z)
 
     def _learnt(self, X: np.ndarray, mean: np.ndarray, projection: np.ndarray) -> None:
-        self.mean, self.projection = mean, np.ascontiguousarray(projection)
-        self.scale = np.maximum(((X - mean) @ self.projection).std(axis=0), np.finfo(float).tiny)
+        self.mean_, self.projection_ = mean, np.ascontiguousarray(projection)
+        self.scale_ = np.maximum(((X - mean) @ self.projection_).std(axis=0), np.finfo(float).tiny)
 
     def features(self, scan: FaceScan) -> np.ndarray:
         """(k,) the face's coordinates in the learnt subspace."""
-        if self.projection is None:
+        if self.projection_ is None:
             raise RuntimeError(f"the {self.name} matcher is not trained: call fit() or load a model")
-        return (self.vector(scan) - self.mean) @ self.projection
+        return (self.vector(scan) - self.mean_) @ self.projection_
 
     def state(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        if self.projection is None:
+        if self.projection_ is None:
             return {}, {}
-        return {"mean": self.mean, "projection": self.projection, "scale": self.scale}, {}
+        return {"mean": self.mean_, "projection": self.projection_, "scale": self.scale_}, {}
 
     def set_state(self, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any]) -> None:
         if arrays:
-            self.mean, self.projection, self.scale = (np.asarray(arrays[k], dtype=np.float64)
+            self.mean_, self.projection_, self.scale_ = (np.asarray(arrays[k], dtype=np.float64)
                                                       for k in ("mean", "projection", "scale"))
 
     def enroll(self, scan: FaceScan) -> Template:
@@ -186,7 +187,7 @@ class _SubspaceMatcher(Matcher):
             return G @ p / np.maximum(np.linalg.norm(G, axis=1) * np.linalg.norm(p), np.finfo(float).tiny)
         diff = G - p
         if self.config.distance == "mahalanobis":
-            diff = diff / self.scale
+            diff = diff / self.scale_
         return -np.sqrt(np.einsum("ij,ij->i", diff, diff))
 
     def score(self, probe: FaceScan | np.ndarray, template: Template) -> float:
@@ -223,7 +224,7 @@ class LDAMatcher(_SubspaceMatcher):
         """Learn PCA (§8.8.3) then the Fisher directions (§8.8.2) from training faces of ≥ 2 subjects."""
         n_classes = len(set(subjects))
         if n_classes < 2 or len(scans) <= n_classes:
-            raise ValueError(f"LDA needs at least 2 subjects and more faces than subjects "
+            raise InputError(f"LDA needs at least 2 subjects and more faces than subjects "
                              f"(got {len(scans)} faces of {n_classes})")
         X = self._training_matrix(scans)
         limit = len(X) - n_classes

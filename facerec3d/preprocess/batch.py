@@ -1,23 +1,31 @@
-"""Preprocessing many files: in parallel processes, with failures recorded rather than raised, and cached.
+"""Preprocessing many files: on parallel workers, with failures recorded rather than raised, and cached.
 
 A failure to acquire (ISO/IEC 19795-1: unreadable file, no face found) is
 reported with its reason and the batch goes on. With a cache folder, each
 result (face or failure) is kept under a key made of the file's path, size,
 modification time and the whole preprocessing configuration, so a rerun or a
-second method reuses the work.
+second method reuses the work. Entries are written atomically, so workers in
+several processes or on several machines (a Dask cluster sharing the folder)
+can fill one cache at the same time.
 """
 
 from __future__ import annotations
 
 import hashlib
+import os
+import time
+import uuid
 from collections.abc import Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from facerec3d.errors import FaceRec3DError
 from facerec3d.preprocess.pipeline import PreprocessConfig, Preprocessor
 from facerec3d.scan import FaceScan
+from facerec3d.workers import Workers, one_thread_per_process  # noqa: F401 (server.app imports it from here)
+
+#: The preprocessing cache of the command line (`--cache` changes it).
+DEFAULT_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "facerec3d" / "preprocessed"
 
 
 @dataclass(frozen=True)
@@ -27,6 +35,8 @@ class Outcome:
     path: str
     face: FaceScan | None
     error: str | None = None
+    cached: bool = False  # read from the cache, not computed
+    seconds: float = 0.0  # time to load or compute it (in the worker)
 
 
 def cache_key(path: str | Path, config: PreprocessConfig, intrinsics: str | Path | None = None) -> str:
@@ -48,52 +58,73 @@ def preprocess_file(path: str | Path, config: PreprocessConfig = PreprocessConfi
                     cache: str | Path | None = None, intrinsics: str | Path | None = None) -> Outcome:
     """Load and preprocess one scan file (a depth frame with `intrinsics` when given); errors of facerec3d become a
     failed Outcome."""
-    from facerec3d.io import load_scan, save_scan, scan_stem
+    from facerec3d.io import load_scan
 
+    t0 = time.perf_counter()
     stored = None
     if cache is not None and Path(path).is_file():
         stored = Path(cache) / cache_key(path, config, intrinsics)
-        if stored.with_suffix(".npz").is_file():
-            face = load_scan(stored.with_suffix(".npz"))
-            return Outcome(str(path), face.replace(meta=face.meta.replace(path=str(path), scan_id=scan_stem(path))))
-        if stored.with_suffix(".fail").is_file():
-            return Outcome(str(path), None, stored.with_suffix(".fail").read_text())
+        if (outcome := _read_cache(stored, path)) is not None:
+            return replace(outcome, seconds=time.perf_counter() - t0)
     try:
         outcome = Outcome(str(path), Preprocessor(config)(load_scan(path, intrinsics)))
     except FaceRec3DError as e:
         outcome = Outcome(str(path), None, getattr(e, "reason", str(e)))
     if stored is not None:
-        stored.parent.mkdir(parents=True, exist_ok=True)
+        _write_cache(stored, outcome)
+    return replace(outcome, seconds=time.perf_counter() - t0)
+
+
+def _read_cache(stored: Path, path: str | Path) -> Outcome | None:
+    """The cached outcome under key path `stored` (face `.npz` or failure `.fail`), or None when there is none or
+    it is damaged (truncated, garbled): a damaged entry is deleted, to be computed again."""
+    from facerec3d.io import load_scan, scan_stem
+
+    face_file, fail_file = stored.with_suffix(".npz"), stored.with_suffix(".fail")
+    try:
+        if face_file.is_file():
+            face = load_scan(face_file)
+            return Outcome(str(path), face.replace(meta=face.meta.replace(path=str(path), scan_id=scan_stem(path))),
+                           cached=True)
+        if not fail_file.is_file():
+            return None
+        if reason := fail_file.read_text(encoding="utf-8"):
+            return Outcome(str(path), None, reason, cached=True)
+    except (FaceRec3DError, OSError, UnicodeDecodeError):
+        pass
+    for damaged in (face_file, fail_file):
+        damaged.unlink(missing_ok=True)
+    return None
+
+
+def _write_cache(stored: Path, outcome: Outcome) -> None:
+    """Cache an outcome atomically: written to a temporary file, then renamed over the entry (os.replace), so a
+    killed process or a concurrent writer never leaves a partial entry."""
+    from facerec3d.io import save_scan
+
+    suffix = ".npz" if outcome.face is not None else ".fail"
+    stored.parent.mkdir(parents=True, exist_ok=True)
+    tmp = stored.with_name(f"{stored.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp{suffix}")
+    try:
         if outcome.face is not None:
-            save_scan(outcome.face, stored.with_suffix(".npz"))
+            save_scan(outcome.face, tmp)
         else:
-            stored.with_suffix(".fail").write_text(outcome.error)
-    return outcome
+            tmp.write_text(outcome.error, encoding="utf-8")
+        os.replace(tmp, stored.with_suffix(suffix))
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
-def one_thread_per_process() -> None:
-    """Worker initialiser: one BLAS/OpenMP thread per process, so N processes use N cores, not N²."""
-    from threadpoolctl import threadpool_limits
-
-    threadpool_limits(1)
-
-
-def _run(args: tuple[str, PreprocessConfig, str | None, str | None]) -> Outcome:
-    return preprocess_file(*args)
-
-
-def preprocess_files(paths: Sequence[str | Path], config: PreprocessConfig = PreprocessConfig(),
-                     jobs: int = 1, cache: str | Path | None = None,
+def preprocess_files(paths: Sequence[str | Path], config: PreprocessConfig = PreprocessConfig(), *,
+                     workers: Workers | None = None, jobs: int = 1, cache: str | Path | None = None,
                      intrinsics: str | Path | None = None) -> Iterator[Outcome]:
-    """Outcomes in the order of `paths`, computed by `jobs` processes (reusing `cache` when given; depth frames
-    read with `intrinsics` when given)."""
-    work = [(str(p), config, None if cache is None else str(cache), None if intrinsics is None else str(intrinsics))
-            for p in paths]
-    if jobs <= 1 or len(work) <= 1:
-        from threadpoolctl import threadpool_limits
-
-        with threadpool_limits(1):
-            yield from map(_run, work)
+    """Outcomes in the order of `paths`, computed on `workers` (an engine's: local processes or Dask workers), or
+    else by `jobs` local processes started for the batch; reusing `cache` when given (a folder the workers
+    share); depth frames read with `intrinsics` when given."""
+    args = (config, None if cache is None else str(cache), None if intrinsics is None else str(intrinsics))
+    files = [str(p) for p in paths]
+    if workers is not None:
+        yield from workers.imap(preprocess_file, files, *args)
         return
-    with ProcessPoolExecutor(max_workers=jobs, initializer=one_thread_per_process) as pool:
-        yield from pool.map(_run, work, chunksize=1)
+    with Workers.create(jobs if len(files) > 1 else 1) as own:
+        yield from own.imap(preprocess_file, files, *args)

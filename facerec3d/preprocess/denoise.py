@@ -25,6 +25,10 @@ class DenoiseConfig:
     method: str = "median"  # "median", "gaussian" or "none"
     size_mm: float = 2.0  # median window width, or 2σ of the Gaussian
 
+    def __post_init__(self) -> None:
+        if self.method not in ("median", "gaussian", "none"):
+            raise ValueError(f"unknown denoising method {self.method!r}: use median, gaussian or none")
+
 
 @dataclass(frozen=True)
 class SmoothConfig:

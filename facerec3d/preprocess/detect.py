@@ -14,7 +14,7 @@ prior regularises that fit and ranks placements; it does not decide whether
 there is a face, since real faces lie well outside any model's span.
 
 A placement counts only if the scan shows a face there: a nose standing out
-of the plane of the surface around it (`nose_protrusion`) and a face surface
+of the plane and the dome of the surface around it (`nose_heights`) and a face surface
 the camera could have seen (`seen_share`: a face fitted to an ear or a
 shoulder puts its nose where the camera saw nothing, or saw past it). The
 upright-head prior of Mian et al. (2007) breaks ties: a nose lies 30–190 mm
@@ -58,6 +58,9 @@ class DetectConfig:
     seen_radius_px: float = 1.5
     tip_radius_mm: float = 8.0  # protrusion: scan points this near the nose axis give the tip's height ...
     ring_mm: tuple[float, float] = (20.0, 35.0)  # ... above the plane through the points this far from it
+    min_dome_mm: float = 3.0  # ... and, where that ring is whole, above the dome through it (plane + κ r²): a
+    #                           rounded surface (the back of a head, ~4 mm above its plane) stands ~0 above its dome,
+    #                           a nose ≥ 4 (real Kinect v2 frames, rap3df-2019 tuning half)
     start_yaws: tuple[float, ...] = (-70.0, -35.0, 0.0, 35.0, 70.0)  # degrees: coarse fits start from the Hotelling
     #                                                                   frame turned so (a head in profile) ...
     frontal_yaw: float = 40.0  # ... those of at most this yaw for candidates inside the surface, all for those at its rim
@@ -209,7 +212,10 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
             R0 = hotelling_rotation(near[np.linalg.norm(near - c, axis=1) <= 0.6 * config.context_mm])
             coarse.append(max((fit_face_model(near, T @ R0, -(T @ R0) @ c, config.coarse)
                                for T in (turns if at_rim else frontal)), key=lambda f: f.inlier_fraction))
-    coarse.sort(key=lambda f: -f.inlier_fraction + head_penalty(f, sub, crown, config))
+    # on quantised depth nearly every placement fits the rigid mean face, so those with a nose standing out of
+    # the scan where the mean face puts it go first (the same test that decides below)
+    coarse.sort(key=lambda f: (not is_nose(nose_heights(scan.points, f, config), config),
+                               -f.inlier_fraction + head_penalty(f, sub, crown, config)))
     if not coarse or coarse[0].inlier_fraction < config.min_coarse_inliers:
         why = "no face-like surface found" if not coarse else (
             f"no face fits: at best {coarse[0].inlier_fraction:.0%} of the points near a nose candidate fit a face")
@@ -223,21 +229,26 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
     for f in finalists[: config.finalists]:
         near = scan.points[np.linalg.norm(scan.points - f.landmarks["nose_tip"], axis=1) <= config.context_mm]
         fits.append(fit_face_model(near, f.R, f.t, config.model))
-    # the best face-shaped placement wins: a nose standing out of the scanned surface (`nose_protrusion`) and a
+    # the best face-shaped placement wins: a nose standing out of the scanned surface (`nose_heights`) and a
     # face surface the camera could have seen (`seen_share`); ranked by the rigid mean face fitting there (the
     # coarse fit), the full model fitting with a likely identity and the seen share, less the head penalty
-    shaped = [(f, c, nose_protrusion(scan.points, f, config), seen_share(scan, f, config)) for f, c in zip(fits, finalists)]
+    sight = _SightLines(scan, config)
+    shaped = [(f, c, nose_heights(scan.points, f, config), seen_share(scan, f, config, sight))
+              for f, c in zip(fits, finalists)]
     shaped.sort(key=lambda x: -(x[1].inlier_fraction + placement_score(x[0], config) + x[3]
                                 - head_penalty(x[0], sub, crown, config)))
-    passing = [(f, p) for f, _, p, seen in shaped
-               if p >= config.min_protrusion_mm and seen >= config.min_seen and f.inlier_fraction >= config.min_inliers]
+    passing = [(f, h[0]) for f, _, h, seen in shaped
+               if is_nose(h, config) and seen >= config.min_seen and f.inlier_fraction >= config.min_inliers]
     if not passing:
-        fit, _, protrusion, seen = shaped[0]
+        fit, _, (protrusion, dome), seen = shaped[0]
         if fit.inlier_fraction < config.min_inliers:
             why = f"the face model does not fit ({fit.inlier_fraction:.0%} of points)"
         elif protrusion < config.min_protrusion_mm:
             why = (f"no face-shaped surface: nothing protrudes at the fitted nose (tip {protrusion:.0f} mm above its "
                    f"surroundings, a nose needs {config.min_protrusion_mm:g})")
+        elif dome < config.min_dome_mm:
+            why = (f"no face-shaped surface: a rounded surface, no nose (tip {dome:.1f} mm above the dome around it, "
+                   f"a nose needs {config.min_dome_mm:g})")
         else:
             why = f"no face-shaped surface: the camera saw only {seen:.0%} of where the fitted face would be"
         raise FailureToAcquire(why, scan.meta.path)
@@ -285,14 +296,23 @@ def head_penalty(fit: ModelFit, sub: FaceScan, crown: np.ndarray, config: Detect
     return config.head_weight * max(0.0, lo - height, height - hi) / 50.0
 
 
-def seen_share(scan: FaceScan, fit: ModelFit, config: DetectConfig = DetectConfig()) -> float:
+class _SightLines:
+    """The scan's points by their (x, y), searched by `seen_share` (built once for all placements of a scan)."""
+
+    def __init__(self, scan: FaceScan, config: DetectConfig):
+        from scipy.spatial import cKDTree
+
+        self.tree = cKDTree(scan.points[:, :2])
+        self.reach = config.seen_radius_px * scan.resolution()
+
+
+def seen_share(scan: FaceScan, fit: ModelFit, config: DetectConfig = DetectConfig(),
+               sight: _SightLines | None = None) -> float:
     """Free-space check of a placement: of the fitted model's surface within `seen_radius_mm` of its nose that faces
     the camera (scan frame, looking along −Z), the share the scan agrees with, i.e. has a point within
     `seen_margin_mm` in depth along the line of sight, or nearer (occluding it). A face fitted to an ear or a
     shoulder puts its nose where the camera saw nothing or saw past it. Lines of sight are taken parallel to Z
     within `seen_radius_px` pixels (the scan's pitch), which holds near the optical axis."""
-    from scipy.spatial import cKDTree
-
     R, t = fit.R, fit.t
     near = np.linalg.norm(fit.vertices, axis=1) <= config.seen_radius_mm
     v = (fit.vertices[near] - t) @ R  # frontal -> scan frame: x = Rᵀ (y − t)
@@ -300,8 +320,8 @@ def seen_share(scan: FaceScan, fit: ModelFit, config: DetectConfig = DetectConfi
     v = v[n[:, 2] > 0.3]
     if len(v) == 0:
         return 0.0
-    reach = config.seen_radius_px * scan.resolution()
-    d, idx = cKDTree(scan.points[:, :2]).query(v[:, :2], k=8, distance_upper_bound=reach)
+    sight = sight or _SightLines(scan, config)
+    d, idx = sight.tree.query(v[:, :2], k=8, distance_upper_bound=sight.reach)
     found = np.isfinite(d)
     z = np.where(found, scan.points[np.minimum(idx, scan.n_points - 1), 2], -np.inf)
     agree = (z >= v[:, 2:3] - config.seen_margin_mm).any(axis=1)
@@ -316,27 +336,41 @@ def placement_score(fit: ModelFit, config: DetectConfig = DetectConfig()) -> flo
     return fit.inlier_fraction - config.identity_penalty * max(0.0, rms - 1.0)
 
 
-def nose_protrusion(points: np.ndarray, fit: ModelFit, config: DetectConfig = DetectConfig()) -> float:
+def nose_heights(points: np.ndarray, fit: ModelFit, config: DetectConfig = DetectConfig()) -> tuple[float, float]:
     """How far (mm) the scanned surface at the fitted nose tip stands out of the scanned surface around it: the
-    90th percentile height of the points within `tip_radius_mm` of the nose axis above the plane through the
-    points of the `ring_mm` annulus around it (least squares, normal towards the fitted face's front). A nose
-    stands out of the plane of its cheeks and brow; a wall, however the frame is tilted, does not; nor does the
-    rim of a convex body (a hand, a shoulder), whose surface falls away from the plane through what lies inside.
-    −inf without tip points or with ring points on fewer than two sides (left, right, above). Measured on the
-    scan only, so a face model bent to fit a wall does not make a nose."""
+    90th percentile height of the points within `tip_radius_mm` of the nose axis above (1) the plane through the
+    points of the `ring_mm` annulus around it (least squares, normal towards the fitted face's front) and (2), where
+    that ring is whole (points left, right, above and below), the dome through it: that plane plus κ r², r the
+    distance from the axis. A nose stands out of the plane of its cheeks and brow; a wall, however the frame is
+    tilted, does not; nor does the rim of a convex body (a hand, a shoulder), whose surface falls away from the plane
+    through what lies inside; a rounded surface (the back of a head) stands a few mm out of its plane but not out of
+    its dome. (−inf, −inf) without tip points or with ring points on fewer than two sides (left, right, above); the
+    dome height is +inf when the ring is not whole (a face in profile). Measured on the scan only, so a face model
+    bent to fit a wall does not make a nose."""
     p = points @ fit.R.T + fit.t
     p = p[np.linalg.norm(p, axis=1) <= config.ring_mm[1] + 20.0]
     r = np.linalg.norm(p[:, :2], axis=1)
     tip = p[r <= config.tip_radius_mm]
     ring = p[(r >= config.ring_mm[0]) & (r <= config.ring_mm[1])]
-    sides = [(ring[:, 0] < -10.0).sum(), (ring[:, 0] > 10.0).sum(), (ring[:, 1] > 10.0).sum()]
-    if len(tip) == 0 or sum(n >= 5 for n in sides) < 2:
-        return float("-inf")
+    sides = [(ring[:, 0] < -10.0).sum(), (ring[:, 0] > 10.0).sum(), (ring[:, 1] > 10.0).sum(), (ring[:, 1] < -10.0).sum()]
+    if len(tip) == 0 or sum(n >= 5 for n in sides[:3]) < 2:
+        return float("-inf"), float("-inf")
     centre = ring.mean(axis=0)
     normal = np.linalg.svd(ring - centre, full_matrices=False)[2][2]
     if normal[2] < 0:
         normal = -normal
-    return float(np.percentile((tip - centre) @ normal, 90))
+    plane = float(np.percentile((tip - centre) @ normal, 90))
+    if min(sides) < 5:
+        return plane, float("inf")
+    design = lambda q: np.c_[np.ones(len(q)), q[:, :2], (q[:, :2] ** 2).sum(axis=1)]  # z = a + b x + c y + κ r²
+    coef = np.linalg.lstsq(design(ring), ring[:, 2], rcond=None)[0]
+    return plane, float(np.percentile(tip[:, 2] - design(tip) @ coef, 90))
+
+
+def is_nose(heights: tuple[float, float], config: DetectConfig = DetectConfig()) -> bool:
+    """Whether `nose_heights` are those of a nose: above `min_protrusion_mm` over the plane, `min_dome_mm` over the
+    dome."""
+    return heights[0] >= config.min_protrusion_mm and heights[1] >= config.min_dome_mm
 
 
 def crop_sphere(scan: FaceScan, center: np.ndarray, radius_mm: float = 80.0) -> FaceScan:

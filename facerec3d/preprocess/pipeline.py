@@ -21,12 +21,15 @@ that maps input-scan coordinates x to R x + t in the frontal frame, and
 `meta.extra["quality"]` the scan's quality (`QUALITY_FIELDS`): how well the
 face model fits (RMS mm, share of inliers), how far the nose protrudes, how
 much of the face was seen, and the measured pitch, depth step and noise at
-the face, so a user can see why a scan is weak.
+the face, so a user can see why a scan is weak; `meta.extra["preprocess_fingerprint"]`
+is the settings' `PreprocessConfig.digest()`, so a saved face (`.npz`) says how it was made
+(`preprocessed_with`: a gallery service takes such a face as it is when the settings are its own).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import time
 from dataclasses import dataclass, field
@@ -66,15 +69,21 @@ class PreprocessConfig:
         """A stable text of the whole configuration (cache keys, gallery stores)."""
         return json.dumps(self.to_dict(), sort_keys=True)
 
+    def digest(self) -> str:
+        """A short hash of `fingerprint()` (16 hex digits): recorded in every face `Preprocessor` makes
+        (`meta.extra["preprocess_fingerprint"]`, kept in its `.npz`) and shown by a gallery service's stats."""
+        return hashlib.sha256(self.fingerprint().encode()).hexdigest()[:16]
+
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "PreprocessConfig":
-        return from_dict(cls, data)
+    def from_dict(cls, data: dict[str, Any], source: str | Path | None = None) -> "PreprocessConfig":
+        """Settings checked field by field (config.from_dict); errors name `source`, the file they came from."""
+        return from_dict(cls, data, source)
 
     @classmethod
     def load(cls, path: str | Path) -> "PreprocessConfig":
         """A configuration from a TOML or JSON file holding some of the fields (nested by stage)."""
         data = read_settings(path)
-        return cls.from_dict(data.get("preprocess", data))
+        return cls.from_dict(data.get("preprocess", data), path)
 
 
 class Preprocessor:
@@ -104,7 +113,7 @@ class Preprocessor:
                    "protrusion_mm": found.protrusion_mm, "coverage": face_coverage(out, cfg.coverage_radius_mm),
                    **at_face.to_dict()}
         extra = dict(out.meta.extra, to_frontal=np.hstack([found.R, found.t[:, None]]).tolist(),
-                     quality={k: round(float(v), 4) for k, v in quality.items()})
+                     quality={k: round(float(v), 4) for k, v in quality.items()}, **{FINGERPRINT_KEY: cfg.digest()})
         return out.replace(meta=out.meta.replace(extra=extra))
 
     def _timed(self, stage: str, fn, *args):
@@ -112,6 +121,19 @@ class Preprocessor:
         result = fn(*args)
         self.timings[stage] = self.timings.get(stage, 0.0) + time.perf_counter() - t0
         return result
+
+
+FINGERPRINT_KEY = "preprocess_fingerprint"  # meta.extra of a preprocessed face: its settings' digest()
+
+
+def preprocessed_with(face: FaceScan) -> str | None:
+    """The `PreprocessConfig.digest()` a face made by `Preprocessor` records (a preprocessed `.npz` keeps it);
+    "" for a face preprocessed by facerec3d that records none (an older version: its frontal transform only);
+    None for a scan that is not a preprocessed face."""
+    extra = face.meta.extra
+    if FINGERPRINT_KEY in extra:
+        return str(extra[FINGERPRINT_KEY])
+    return "" if "to_frontal" in extra else None
 
 
 QUALITY_FIELDS = ("fit_rms_mm", "inlier_fraction", "protrusion_mm", "coverage", "pitch_mm", "depth_step_mm",

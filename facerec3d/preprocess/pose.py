@@ -15,10 +15,9 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
+from numba import njit
 
-from facerec3d.datasets.model import FIDUCIAL_LANDMARK68, load_model
+from facerec3d.facemodel import FIDUCIAL_LANDMARK68, load_model
 
 
 def rotation_to_z(normal: np.ndarray) -> np.ndarray:
@@ -66,6 +65,8 @@ class _FitBasis:
     triangles: np.ndarray  # (T, 3) triangles of the fitted part
     boundary: np.ndarray  # (n,) bool: vertex on the rim of the fitted part or of its holes
     landmarks: dict[str, int]  # fiducial -> row in mean
+    normals: np.ndarray  # (n, 3) vertex normals of mean
+    grid: _Grid  # nearest-vertex search structure of mean
 
 
 def _fit_basis(config: ModelFitConfig) -> _FitBasis:
@@ -91,7 +92,10 @@ def _basis(identity_modes: int, expression_modes: bool, radius_mm: float) -> _Fi
     boundary = np.zeros(len(sel), bool)
     boundary[uniq[count == 1].ravel()] = True
     fid = {name: int(row[m.landmarks68[i]]) for name, i in FIDUCIAL_LANDMARK68.items() if row[m.landmarks68[i]] >= 0}
-    return _FitBasis((m.mean[sel] - nose).astype(np.float64), basis, tris, boundary, fid)
+    mean = (m.mean[sel] - nose).astype(np.float64)
+    basis, tris = np.ascontiguousarray(basis), np.ascontiguousarray(tris, dtype=np.int64)
+    grid = _Grid.build(mean, _DistanceField.build(mean))
+    return _FitBasis(mean, basis, tris, boundary, fid, _normals(mean, tris), grid)
 
 
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -100,6 +104,264 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     corners, weights = triangles.ravel(), np.repeat(fn, 3, axis=0)  # each face normal to its three vertices
     vn = np.stack([np.bincount(corners, weights[:, d], minlength=len(vertices)) for d in range(3)], axis=1)
     return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
+
+
+# Nearest model vertices, found exactly (the pairs are those of a k-d tree, scipy's cKDTree, whose rebuild on
+# every iteration and whose queries dominated the fit) but at a fraction of the cost. The vertices are bucketed in a
+# uniform grid; a point's search starts from a vertex near it (its partner in the previous iteration, else the
+# vertex nearest to the centre of its cell in a finer distance field over the mean face) and visits only the
+# cells that the ball through that vertex reaches. The field's distances also bound the point's distance to the
+# surface from below (less `shift`, how far the fitted vertices may have moved from the mean), which drops the
+# far points of the coarse fits at once. The mean face's grid and field are built once (`_basis`).
+_GRID_MM = 8.0  # search cell size
+_FIELD_MM = 3.0  # distance-field cell size ...
+_FIELD_REACH_MM = 25.0  # ... over the mean face and this far around it (past the coarse fit's first cut-off)
+_SLACK_MM = 1e-6  # the search's bounds are loosened by this much, far above rounding of coordinates in mm
+
+
+@dataclass(frozen=True)
+class _DistanceField:
+    """For each cell centre of a grid over the mean face: the distance to the nearest vertex (capped at the reach)
+    and that vertex (-1 beyond the reach)."""
+
+    lo: np.ndarray  # (3,) corner of cell (0, 0, 0)
+    dims: np.ndarray  # (3,) cells along x, y, z
+    dist: np.ndarray  # (cells,) mm
+    near: np.ndarray  # (cells,)
+
+    @staticmethod
+    def build(V: np.ndarray) -> _DistanceField:
+        return _DistanceField(*_distance_field(V, _FIELD_MM, _FIELD_REACH_MM))
+
+
+_NO_FIELD = _DistanceField(np.zeros(3), np.zeros(3, np.int64), np.zeros(0), np.zeros(0, np.int64))
+
+
+@dataclass(frozen=True)
+class _Grid:
+    """Vertices bucketed by cell: those of cell (a, b, c) are order[start[i]:start[i + 1]], i = (a·ny + b)·nz + c;
+    with the distance field of the mean face, whose vertices lie at most `shift` mm from these."""
+
+    lo: np.ndarray  # (3,) corner of cell (0, 0, 0)
+    dims: np.ndarray  # (3,) cells along x, y, z
+    start: np.ndarray  # (cells + 1,)
+    order: np.ndarray  # (n,) vertex indices, cell by cell
+    pts: np.ndarray  # (n, 3) the vertices in that order
+    field: _DistanceField
+    shift: float
+
+    @staticmethod
+    def build(V: np.ndarray, field: _DistanceField = _NO_FIELD, shift: float = 0.0) -> _Grid:
+        lo, dims, start, order = _grid_build(V, _GRID_MM)
+        return _Grid(lo, dims, start, order, V[order], field, shift)
+
+    def args(self) -> tuple:
+        f = self.field
+        return (self.lo, _GRID_MM, self.dims, self.start, self.order, self.pts,
+                f.lo, _FIELD_MM, f.dims, f.dist, f.near, self.shift)
+
+
+@njit(cache=True)
+def _grid_build(V, h):  # pragma: no cover - compiled
+    n = V.shape[0]
+    lo = np.empty(3)
+    dims = np.empty(3, np.int64)
+    for d in range(3):
+        lo[d] = V[:, d].min()
+        dims[d] = int(np.floor((V[:, d].max() - lo[d]) / h)) + 1
+    cell = np.empty(n, np.int64)
+    start = np.zeros(dims[0] * dims[1] * dims[2] + 1, np.int64)
+    for i in range(n):
+        idx = 0
+        for d in range(3):
+            idx = idx * dims[d] + min(max(int(np.floor((V[i, d] - lo[d]) / h)), 0), dims[d] - 1)
+        cell[i] = idx
+        start[idx + 1] += 1
+    for c in range(len(start) - 1):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[fill[cell[i]]] = i
+        fill[cell[i]] += 1
+    return lo, dims, start, order
+
+
+@njit(cache=True)
+def _distance_field(V, h, reach):  # pragma: no cover - compiled
+    lo = np.empty(3)
+    dims = np.empty(3, np.int64)
+    for d in range(3):
+        lo[d] = V[:, d].min() - reach
+        dims[d] = int(np.floor((V[:, d].max() + reach - lo[d]) / h)) + 1
+    n1, n2 = dims[1], dims[2]
+    dist2 = np.full(dims[0] * n1 * n2, reach * reach)
+    near = np.full(dims[0] * n1 * n2, -1, np.int64)
+    for i in range(V.shape[0]):  # each vertex to the centres within reach
+        lo_i = np.empty(3, np.int64)
+        hi_i = np.empty(3, np.int64)
+        for d in range(3):
+            lo_i[d] = max(int(np.ceil((V[i, d] - reach - lo[d]) / h - 0.5)), 0)
+            hi_i[d] = min(int(np.floor((V[i, d] + reach - lo[d]) / h - 0.5)), dims[d] - 1)
+        for a in range(lo_i[0], hi_i[0] + 1):
+            e0 = lo[0] + (a + 0.5) * h - V[i, 0]
+            for b in range(lo_i[1], hi_i[1] + 1):
+                e1 = lo[1] + (b + 0.5) * h - V[i, 1]
+                for c in range(lo_i[2], hi_i[2] + 1):
+                    e2 = lo[2] + (c + 0.5) * h - V[i, 2]
+                    dd = e0 * e0 + e1 * e1 + e2 * e2
+                    k = (a * n1 + b) * n2 + c
+                    if dd < dist2[k]:
+                        dist2[k] = dd
+                        near[k] = i
+    return lo, dims, np.sqrt(dist2), near
+
+
+@njit(cache=True, inline="always")
+def _nearest(x0, x1, x2, best2, bj, V, lo, h, dims, start, order, pts,
+             flo, fh, fdims, fdist, fnear, shift):  # pragma: no cover - compiled
+    """Index of the vertex nearest to x among those at squared distance < best2 (else bj)."""
+    if bj < 0:  # no vertex to start from: the distance field's, which may also show that none is near enough
+        g0 = int(np.floor((x0 - flo[0]) / fh))
+        g1 = int(np.floor((x1 - flo[1]) / fh))
+        g2 = int(np.floor((x2 - flo[2]) / fh))
+        if 0 <= g0 < fdims[0] and 0 <= g1 < fdims[1] and 0 <= g2 < fdims[2]:
+            g = (g0 * fdims[1] + g1) * fdims[2] + g2
+            e0, e1, e2 = x0 - flo[0] - (g0 + 0.5) * fh, x1 - flo[1] - (g1 + 0.5) * fh, x2 - flo[2] - (g2 + 0.5) * fh
+            b = fdist[g] - np.sqrt(e0 * e0 + e1 * e1 + e2 * e2) - shift - _SLACK_MM  # no vertex is nearer
+            if b > 0.0 and b * b >= best2:
+                return bj
+            j = fnear[g]
+            if j >= 0:
+                e0, e1, e2 = x0 - V[j, 0], x1 - V[j, 1], x2 - V[j, 2]
+                dd = e0 * e0 + e1 * e1 + e2 * e2
+                if dd < best2:
+                    best2, bj = dd, j
+    f0, f1, f2 = (x0 - lo[0]) / h, (x1 - lo[1]) / h, (x2 - lo[2]) / h
+    if not (best2 < np.inf and abs(f0) < 1e12 and abs(f1) < 1e12 and abs(f2) < 1e12):
+        for s in range(pts.shape[0]):  # no bound, far off or not a number: every vertex
+            e0, e1, e2 = x0 - pts[s, 0], x1 - pts[s, 1], x2 - pts[s, 2]
+            dd = e0 * e0 + e1 * e1 + e2 * e2
+            if dd < best2:
+                best2, bj = dd, order[s]
+        return bj
+    # the cells that the ball of squared radius best2 around x reaches, with pruning by their distance from x
+    rr = np.sqrt(best2) + _SLACK_MM
+    a_lo, a_hi = max(int(np.floor(f0 - rr / h)), 0), min(int(np.floor(f0 + rr / h)), dims[0] - 1)
+    b_lo, b_hi = max(int(np.floor(f1 - rr / h)), 0), min(int(np.floor(f1 + rr / h)), dims[1] - 1)
+    c_lo, c_hi = max(int(np.floor(f2 - rr / h)), 0), min(int(np.floor(f2 + rr / h)), dims[2] - 1)
+    for a in range(a_lo, a_hi + 1):
+        da = max(max(lo[0] + a * h - x0, x0 - lo[0] - (a + 1) * h) - _SLACK_MM, 0.0)
+        da2 = da * da
+        if da2 >= best2:
+            continue
+        for bb in range(b_lo, b_hi + 1):
+            db = max(max(lo[1] + bb * h - x1, x1 - lo[1] - (bb + 1) * h) - _SLACK_MM, 0.0)
+            dab2 = da2 + db * db
+            if dab2 >= best2:
+                continue
+            base = (a * dims[1] + bb) * dims[2]
+            for c in range(c_lo, c_hi + 1):
+                s0, s1 = start[base + c], start[base + c + 1]
+                if s0 == s1:
+                    continue
+                dc = max(max(lo[2] + c * h - x2, x2 - lo[2] - (c + 1) * h) - _SLACK_MM, 0.0)
+                if dab2 + dc * dc >= best2:
+                    continue
+                for s in range(s0, s1):
+                    e0, e1, e2 = x0 - pts[s, 0], x1 - pts[s, 1], x2 - pts[s, 2]
+                    dd = e0 * e0 + e1 * e1 + e2 * e2
+                    if dd < best2:
+                        best2, bj = dd, order[s]
+    return bj
+
+
+@njit(cache=True, inline="always")
+def _start(x0, x1, x2, cutoff2, j, V):  # pragma: no cover - compiled
+    """(squared distance, index) to start a search from: vertex j (the last partner) if nearer than the cut-off."""
+    if j >= 0:
+        e0, e1, e2 = x0 - V[j, 0], x1 - V[j, 1], x2 - V[j, 2]
+        dd = e0 * e0 + e1 * e1 + e2 * e2
+        if dd < cutoff2:
+            return dd, j
+    return cutoff2, -1
+
+
+@njit(cache=True)
+def _query(P, cutoff, prev, V, lo, h, dims, start, order, pts,
+           flo, fh, fdims, fdist, fnear, shift):  # pragma: no cover - compiled
+    """Index of the vertex nearest to each point, -1 where none is nearer than `cutoff`; prev: first candidates."""
+    out = np.empty(P.shape[0], np.int64)
+    cutoff2 = cutoff * cutoff
+    for i in range(P.shape[0]):
+        best2, bj = _start(P[i, 0], P[i, 1], P[i, 2], cutoff2, prev[i], V)
+        out[i] = _nearest(P[i, 0], P[i, 1], P[i, 2], best2, bj, V, lo, h, dims, start, order, pts,
+                          flo, fh, fdims, fdist, fnear, shift)
+    return out
+
+
+@njit(cache=True)
+def _linearise(points, R, t, cutoff, prev, V, normals, boundary, basis, lo, h, dims, start, order, pts,
+               flo, fh, fdims, fdist, fnear, shift):  # pragma: no cover - compiled
+    """One linearised point-to-plane step: each scan point, moved by x -> R x + t, paired with its nearest
+    model vertex nearer than `cutoff` and not on the rim; (J, r) of the pairs. prev: the last partners (updated)."""
+    m, K = points.shape[0], basis.shape[2]
+    J = np.empty((m, 6 + K))
+    r = np.empty(m)
+    cutoff2 = cutoff * cutoff
+    count = 0
+    for i in range(m):
+        x0 = points[i, 0] * R[0, 0] + points[i, 1] * R[0, 1] + points[i, 2] * R[0, 2] + t[0]
+        x1 = points[i, 0] * R[1, 0] + points[i, 1] * R[1, 1] + points[i, 2] * R[1, 2] + t[1]
+        x2 = points[i, 0] * R[2, 0] + points[i, 1] * R[2, 1] + points[i, 2] * R[2, 2] + t[2]
+        best2, bj = _start(x0, x1, x2, cutoff2, prev[i], V)
+        j = _nearest(x0, x1, x2, best2, bj, V, lo, h, dims, start, order, pts, flo, fh, fdims, fdist, fnear, shift)
+        prev[i] = j
+        if j < 0 or boundary[j]:
+            continue
+        n0, n1, n2 = normals[j, 0], normals[j, 1], normals[j, 2]
+        r[count] = n0 * (x0 - V[j, 0]) + n1 * (x1 - V[j, 1]) + n2 * (x2 - V[j, 2])
+        J[count, 0] = x1 * n2 - x2 * n1  # x × n: rotation
+        J[count, 1] = x2 * n0 - x0 * n2
+        J[count, 2] = x0 * n1 - x1 * n0
+        J[count, 3] = n0  # translation
+        J[count, 4] = n1
+        J[count, 5] = n2
+        for k in range(K):  # the modes, moving the vertex
+            J[count, 6 + k] = -(n0 * basis[j, 0, k] + n1 * basis[j, 1, k] + n2 * basis[j, 2, k])
+        count += 1
+    return J[:count], r[:count]
+
+
+@njit(cache=True)
+def _normals(V, tris):  # pragma: no cover - compiled
+    """vertex_normals, compiled: the same sums in the same order."""
+    vn = np.zeros((V.shape[0], 3))
+    for f in range(tris.shape[0]):
+        a, b, c = tris[f, 0], tris[f, 1], tris[f, 2]
+        e0, e1, e2 = V[b, 0] - V[a, 0], V[b, 1] - V[a, 1], V[b, 2] - V[a, 2]
+        g0, g1, g2 = V[c, 0] - V[a, 0], V[c, 1] - V[a, 1], V[c, 2] - V[a, 2]
+        m0, m1, m2 = e1 * g2 - e2 * g1, e2 * g0 - e0 * g2, e0 * g1 - e1 * g0
+        for v in (a, b, c):
+            vn[v, 0] += m0
+            vn[v, 1] += m1
+            vn[v, 2] += m2
+    for v in range(V.shape[0]):
+        s = max(np.sqrt(vn[v, 0] * vn[v, 0] + vn[v, 1] * vn[v, 1] + vn[v, 2] * vn[v, 2]), 1e-12)
+        vn[v, 0] /= s
+        vn[v, 1] /= s
+        vn[v, 2] /= s
+    return vn
+
+
+def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
+    """The rotation matrix of rotation vector w (via the unit quaternion, as scipy's Rotation.from_rotvec)."""
+    angle = float(np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]))
+    scale = 0.5 - angle**2 / 48 + angle**4 / 3840 if angle <= 1e-3 else np.sin(angle / 2) / angle
+    x, y, z, q = scale * w[0], scale * w[1], scale * w[2], np.cos(angle / 2)
+    return np.array([[x * x - y * y - z * z + q * q, 2 * (x * y - z * q), 2 * (x * z + y * q)],
+                     [2 * (x * y + z * q), -x * x + y * y - z * z + q * q, 2 * (y * z - x * q)],
+                     [2 * (x * z - y * q), 2 * (y * z + x * q), -x * x - y * y + z * z + q * q]])
 
 
 @dataclass(frozen=True)
@@ -129,40 +391,38 @@ def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: Mod
     self-occluded parts of the face do not pull the fit.
     """
     fb = _fit_basis(config)
-    points = points[:: max(1, len(points) // config.max_points)]
+    points = np.ascontiguousarray(points[:: max(1, len(points) // config.max_points)], dtype=np.float64)
     K = fb.basis.shape[2]
     c = np.zeros(K)
     R, t = np.asarray(R, float), np.asarray(t, float)
     n = config.iterations
-    V = fb.mean
-    tree, normals = cKDTree(V), vertex_normals(V, fb.triangles)
+    V, normals, grid = fb.mean, fb.normals, fb.grid
+    prev = np.full(len(points), -1, dtype=np.int64)  # each point's last partner, where the search starts
     reg = np.zeros(6 + K)
     reg[6:] = config.regularisation
+    prior = np.diag(reg)
     for i in range(n):
         cutoff = config.start_distance_mm + (config.end_distance_mm - config.start_distance_mm) * i / max(n - 1, 1)
-        p = points @ R.T + t
-        d, j = tree.query(p, distance_upper_bound=cutoff)
-        keep = np.isfinite(d)
-        keep[keep] = ~fb.boundary[j[keep]]
-        if keep.sum() < 50:
+        J, r = _linearise(points, R, t, cutoff, prev, V, normals, fb.boundary, fb.basis, *grid.args())
+        if len(r) < 50:
             break
-        p, j = p[keep], j[keep]
-        nrm = normals[j]
-        r = np.einsum("ij,ij->i", nrm, p - V[j])
-        J = np.concatenate([np.cross(p, nrm), nrm, -np.einsum("ij,ijk->ik", nrm, fb.basis[j])], axis=1)
-        x = np.linalg.solve(J.T @ J + np.diag(reg), -(J.T @ r) - reg * np.concatenate([np.zeros(6), c]))
-        dR = Rotation.from_rotvec(x[:3]).as_matrix()
+        x = np.linalg.solve(J.T @ J + prior, -(J.T @ r) - reg * np.concatenate([np.zeros(6), c]))
+        dR = _rotvec_matrix(x[:3])
         R, t = dR @ R, dR @ t + x[3:6]
         if K:
             c = c + x[6:]
-            V = fb.mean + fb.basis @ c
-            tree, normals = cKDTree(V), vertex_normals(V, fb.triangles)
+            shape = (fb.basis.reshape(-1, K) @ c).reshape(-1, 3)
+            V = fb.mean + shape
+            normals = _normals(V, fb.triangles)
+            grid = _Grid.build(V, fb.grid.field, float(np.sqrt(np.max(np.einsum("ij,ij->i", shape, shape)))))
     nose = V[fb.landmarks["nose_tip"]]
     landmarks = {name: R.T @ (V[k] - t) for name, k in fb.landmarks.items()}
     p = points @ R.T + (t - nose)
     core = np.linalg.norm(p, axis=1) <= config.core_radius_mm
-    d, j = tree.query(p[core] + nose)
-    dist = np.abs(np.einsum("ij,ij->i", normals[j], p[core] + nose - V[j]))
+    q = p[core] + nose
+    j = _query(q, np.inf, prev[core], V, *grid.args())
+    dist = np.abs(np.einsum("ij,ij->i", normals[j], q - V[j]))
     good = dist <= config.inlier_mm
     rms = float(np.sqrt(np.mean(dist[good] ** 2))) if good.any() else float("inf")
-    return ModelFit(R, t - nose, landmarks, rms, float(good.mean()) if len(good) else 0.0, c, V - nose, normals)
+    return ModelFit(R, t - nose, landmarks, rms, float(good.mean()) if len(good) else 0.0, c, V - nose,
+                    normals.copy() if normals is fb.normals else normals)

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from facerec3d.errors import FailureToAcquire
+from facerec3d.io.common import MAX_POINTS
 from facerec3d.scan import FaceScan
 
 
@@ -97,9 +99,10 @@ def resample(scan: FaceScan, config: ResampleConfig = ResampleConfig()) -> FaceS
 
 
 def depth_map(scan: FaceScan, config: ResampleConfig = ResampleConfig()) -> tuple[np.ndarray, np.ndarray]:
-    """(depth (size, size) with NaN where invalid, valid mask) of a resampled scan."""
-    if scan.grid_shape != (config.size, config.size):
-        raise ValueError(f"scan grid {scan.grid_shape} is not the {config.size}×{config.size} resampling grid")
+    """(depth (size, size) with NaN where invalid, valid mask) of a resampled scan: the z of its range image."""
+    if scan.grid is None or scan.grid_shape != (config.size, config.size):
+        raise ValueError(f"not a preprocessed face: grid {scan.grid_shape}, expected the {config.size}×{config.size} "
+                         "resampling grid (§8.5.6)")
     xyz, valid = scan.to_range_image()
     return xyz[..., 2], valid
 
@@ -118,6 +121,9 @@ def gridify(scan: FaceScan, resolution_mm: float = 0.7) -> FaceScan:
     col = np.floor((scan.points[:, 0] - lo[0]) / resolution_mm).astype(np.int64)
     row = np.floor((scan.points[:, 1].max() - scan.points[:, 1]) / resolution_mm).astype(np.int64)
     shape = (int(row.max()) + 1, int(col.max()) + 1)
+    if shape[0] * shape[1] > MAX_POINTS:  # the grid's images would not fit in memory; no face is that large
+        raise FailureToAcquire(f"the point cloud spans {shape[0]}×{shape[1]} cells of {resolution_mm} mm, "
+                               f"more than a face scan's {MAX_POINTS}")
     cell = row * shape[1] + col
     order = np.lexsort((-scan.points[:, 2], cell))  # per cell, front-most (largest z) first
     first = order[np.r_[True, cell[order][1:] != cell[order][:-1]]]

@@ -1,4 +1,5 @@
-"""The ICT-FaceKit Light morphable face model, shipped with facerec3d.
+"""The ICT-FaceKit Light morphable face model, shipped with facerec3d: preprocessing fits its fiducials (pose),
+matching uses its expression mobility, and the synthetic data are made from it.
 
 Copyright (c) 2020 USC Institute for Creative Technologies, MIT licence (see
 data/LICENSE-ICT-FaceKit). The face and head-and-neck part (11,248 vertices)
@@ -83,7 +84,7 @@ class MorphableModel:
 @lru_cache(maxsize=1)
 def load_model() -> MorphableModel:
     """The packaged ICT-FaceKit model (cached)."""
-    with resources.files("facerec3d.datasets").joinpath("data/ict_facekit.npz").open("rb") as f:
+    with resources.files("facerec3d.facemodel").joinpath("data/ict_facekit.npz").open("rb") as f:
         d = np.load(f)
         return MorphableModel(
             mean=d["mean"],

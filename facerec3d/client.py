@@ -1,0 +1,193 @@
+"""A small Python client of the gallery service (`facerec3d serve`).
+
+    from facerec3d.client import Client
+    with Client("http://127.0.0.1:8000", api_key="fr3d_…") as c:     # or FACEREC3D_API_KEY in the environment
+        c.enrol("04200d74.abs.gz", subject="04200")               # -> {"id": 17, "subject": "04200", ...}
+        c.identify("probe.abs.gz", k=5, cascade=True)["candidates"]
+        c.verify("probe.abs.gz", claim="04200")["accepted"]
+
+Errors of the service raise `ServiceError` (with `status` and the service's `reason`); a service that cannot
+be reached raises it too (status 0). Busy answers (429, 503) are retried after their Retry-After, a few times.
+Needs httpx: pip install 'facerec3d[service]'.
+
+Preprocessing at the edge: `enrol`, `identify` and `verify` take `preprocess_locally=True` to preprocess the scan
+here, with the service's own settings (from /v1/stats, checked against its fingerprint), and upload the face
+(.npz, recording that fingerprint), which the service matches without preprocessing it again — the scan's
+preprocessing (a few tenths of a core-second) is spent on the client's cores instead of the service's. A file that already is such
+a face is uploaded as it is. Answers say `"preprocessed_upload": true` when the service took the face as it was.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from facerec3d.errors import FaceRec3DError
+
+API_KEY_ENV = "FACEREC3D_API_KEY"
+
+
+class ServiceError(FaceRec3DError):
+    """The service answered with an error (or could not be reached: status 0)."""
+
+    def __init__(self, status: int, reason: str):
+        self.status, self.reason = status, reason
+        super().__init__(f"service error {status}: {reason}" if status else reason)
+
+
+class Client:
+    """Calls a gallery service at `url` with an API key (default: the FACEREC3D_API_KEY environment variable)."""
+
+    def __init__(self, url: str, api_key: str | None = None, timeout: float = 300.0, retries: int = 5):
+        try:
+            import httpx
+        except ImportError:
+            raise FaceRec3DError("the service client needs httpx: pip install 'facerec3d[service]'") from None
+        self.url = url.rstrip("/")
+        key = api_key if api_key is not None else os.environ.get(API_KEY_ENV)
+        self.retries = retries
+        self._http = httpx.Client(base_url=self.url, timeout=timeout, headers={"X-API-Key": key} if key else {})
+        self._httpx = httpx
+        self._preprocessor = None  # the service's preprocessing, made on first use (preprocess_locally)
+        self._lock = threading.Lock()
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ plumbing
+    def _call(self, method: str, path: str, files: dict | None = None, data: dict | None = None,
+              headers: dict | None = None, text: bool = False) -> Any:
+        for attempt in range(self.retries + 1):
+            try:
+                r = self._http.request(method, path, files=files, data=data, headers=headers)
+            except self._httpx.HTTPError as e:
+                raise ServiceError(0, f"cannot reach the service at {self.url}: {e}") from None
+            if r.status_code in (429, 503) and attempt < self.retries:
+                time.sleep(min(30.0, float(r.headers.get("retry-after", 1) or 1) * (1 + attempt)))
+                continue
+            break
+        if r.status_code >= 400:
+            try:
+                reason = r.json()["error"]
+            except (ValueError, KeyError, TypeError):
+                reason = r.text.strip()[:300] or r.reason_phrase
+            raise ServiceError(r.status_code, reason)
+        return r.text if text else r.json()
+
+    @staticmethod
+    def _scan(path: str | os.PathLike, field: str) -> tuple[dict, dict]:
+        """The multipart file of a scan (its name tells the format) and, for a depth frame, its intrinsics."""
+        from facerec3d.io import DEPTH_SUFFIXES, find_intrinsics, scan_suffix
+
+        p = Path(path)
+        data = {}
+        if scan_suffix(p) in DEPTH_SUFFIXES + (".npy",) and (camera := find_intrinsics(p)) is not None:
+            data["intrinsics"] = json.dumps(json.loads(Path(camera).read_text()))
+        return {field: (p.name, p.read_bytes(), "application/octet-stream")}, data
+
+    def preprocessor(self):
+        """A `Preprocessor` with the service's settings (GET /v1/stats), made once; `FaceRec3DError` when this
+        facerec3d cannot reproduce them (its fingerprint of the settings differs from the service's)."""
+        with self._lock:
+            if self._preprocessor is None:
+                self._preprocessor = self._service_preprocessor()
+            return self._preprocessor
+
+    def _service_preprocessor(self):
+        from facerec3d.preprocess.pipeline import PreprocessConfig, Preprocessor
+
+        st = self.stats()
+        try:
+            config = PreprocessConfig.from_dict(st["preprocess"])
+        except (FaceRec3DError, KeyError, TypeError, ValueError) as e:
+            raise FaceRec3DError(f"cannot preprocess locally for {self.url}: its preprocessing settings are not "
+                                 f"this facerec3d's ({e}); upload raw scans") from None
+        if config.digest() != st.get("preprocess_fingerprint"):
+            raise FaceRec3DError(f"cannot preprocess locally for {self.url}: this facerec3d's fingerprint of its "
+                                 f"settings is {config.digest()}, the service's {st.get('preprocess_fingerprint')} "
+                                 "(another version?); upload raw scans")
+        return Preprocessor(config)
+
+    def _preprocessed(self, path: str | os.PathLike, field: str) -> tuple[dict, dict]:
+        """The multipart file of a scan preprocessed here with the service's settings, as `.npz` named after the
+        scan (so the default scan id is the same); a file that already is a preprocessed face goes as it is.
+        `FaceRec3DError` (e.g. no face found) when it cannot be preprocessed."""
+        from facerec3d.io import load_scan, save_scan, scan_stem
+        from facerec3d.preprocess.pipeline import preprocessed_with
+
+        p = Path(path)
+        scan = load_scan(p)
+        if preprocessed_with(scan) is not None:  # already a face: the service says whether its settings fit
+            return {field: (p.name, p.read_bytes(), "application/octet-stream")}, {}
+        face = self.preprocessor()(scan)
+        with tempfile.TemporaryDirectory(prefix="facerec3d-client-") as tmp:
+            out = Path(tmp) / "face.npz"
+            save_scan(face, out)
+            data = out.read_bytes()
+        return {field: (f"{scan_stem(p)}.npz", data, "application/octet-stream")}, {}
+
+    def _upload(self, path: str | os.PathLike, field: str, preprocess_locally: bool) -> tuple[dict, dict]:
+        return self._preprocessed(path, field) if preprocess_locally else self._scan(path, field)
+
+    @staticmethod
+    def _form(**fields: Any) -> dict:
+        return {k: (str(v).lower() if isinstance(v, bool) else str(v)) for k, v in fields.items() if v is not None}
+
+    # ------------------------------------------------------------------ the API
+    def enrol(self, path: str | os.PathLike, subject: str, scan_id: str | None = None,
+              preprocess_locally: bool = False) -> dict:
+        """Enrol a scan file for a subject: the new entry (id, subject, scan_id, source, ...). ServiceError 409
+        when already enrolled, 422 for a failure to enrol (with the reason). `preprocess_locally`: preprocess
+        here and upload the face (see the module's docstring)."""
+        files, data = self._upload(path, "scan", preprocess_locally)
+        return self._call("POST", "/v1/enrol", files, {**data, **self._form(subject=subject, scan_id=scan_id)})
+
+    enroll = enrol
+
+    def identify(self, path: str | os.PathLike, k: int = 5, cascade: bool = False, shortlist: int = 20,
+                 timeout_s: float | None = None, preprocess_locally: bool = False) -> dict:
+        """The k best candidates for a probe scan: {"candidates": [{rank, entry, subject, scan_id, score}], ...}."""
+        files, data = self._upload(path, "probe", preprocess_locally)
+        headers = {"X-Request-Timeout": str(timeout_s)} if timeout_s else None
+        return self._call("POST", "/v1/identify", files,
+                          {**data, **self._form(k=k, cascade=cascade, shortlist=shortlist)}, headers)
+
+    def verify(self, path: str | os.PathLike, claim: str, threshold: float | None = None,
+               preprocess_locally: bool = False) -> dict:
+        """{"accepted", "score", "threshold", "claim", ...} for a probe scan and a claimed subject."""
+        files, data = self._upload(path, "probe", preprocess_locally)
+        return self._call("POST", "/v1/verify", files, {**data, **self._form(claim=claim, threshold=threshold)})
+
+    def subjects(self) -> list[dict]:
+        """[{"subject", "entries"}] of the gallery."""
+        return self._call("GET", "/v1/subjects")["subjects"]
+
+    def entries(self) -> dict:
+        """{"entries": [...], "failures": [{"source", "reason"}]}."""
+        return self._call("GET", "/v1/entries")
+
+    def remove(self, ident: str) -> dict:
+        """Remove subject IDENT's entries (or else scan IDENT's): {"removed": [ids], ...}."""
+        from urllib.parse import quote
+
+        return self._call("DELETE", f"/v1/subjects/{quote(ident, safe='')}")
+
+    def stats(self) -> dict:
+        return self._call("GET", "/v1/stats")
+
+    def health(self) -> dict:
+        return self._call("GET", "/v1/health")
+
+    def metrics(self) -> str:
+        return self._call("GET", "/metrics", text=True)

@@ -1,0 +1,153 @@
+"""Where the work runs: this process, one process per core, or the workers of a Dask cluster.
+
+    with Workers.create(jobs=4) as workers:          # or Workers.create(scheduler="tcp://host:8786")
+        outcomes = list(workers.imap(preprocess_file, paths, config, cache))
+
+One executor per worker: `jobs` = 1 runs in this process; more make one single-process `ProcessPoolExecutor`
+each (dying with the parent); a Dask `distributed.Client` (or a scheduler address) gives one `ClientExecutor`
+pinned to each of its workers. Every worker computes with one BLAS thread, so results do not depend on the
+number or kind of workers. `imap` spreads independent calls over them, each worker kept
+`depth` calls busy, and yields the results in order. `gallery.engine.Engine` is this, plus galleries sharded
+over the same workers, so that one run reads, preprocesses, enrols and matches on one set of workers.
+
+Under Dask, the functions and their arguments travel to the workers: files named by path (scans, the
+preprocessing cache) must be on storage the workers see under the same paths.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
+from typing import Any
+
+from threadpoolctl import ThreadpoolController
+
+from facerec3d.errors import InputError
+
+_THREADPOOLS = ThreadpoolController()  # made once: inspecting the loaded BLAS libraries costs milliseconds
+
+
+def one_thread_per_process() -> None:
+    """Worker initialiser: one BLAS/OpenMP thread per process, so N processes use N cores, not N²."""
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1)
+
+
+def _init_worker() -> None:
+    """Process-pool worker start: one BLAS thread; on Linux, die with the parent process (PR_SET_PDEATHSIG),
+    so a killed run leaves no orphaned workers."""
+    one_thread_per_process()
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL(None).prctl(1, signal.SIGKILL)
+
+
+class InlineExecutor(Executor):
+    """Runs each call at once in this process (one BLAS thread), for `jobs` = 1."""
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        f: Future = Future()
+        try:
+            with _THREADPOOLS.limit(limits=1):
+                f.set_result(fn(*args, **kwargs))
+        except BaseException as e:  # handed to the caller by f.result()
+            f.set_exception(e)
+        return f
+
+
+class Workers:
+    """Executors to run work on, one per worker; `create` makes them, `close` shuts them down."""
+
+    def __init__(self, executors: Sequence[Executor], client: Any = None, own_client: bool = False,
+                 addresses: Sequence[str] = ()):
+        """`client`, with its worker `addresses` (one per executor): a Dask client, shut down on `close`
+        when `own_client`."""
+        if not executors:
+            raise ValueError("at least one executor is needed")
+        self.executors = list(executors)
+        self._client, self._own_client, self._addresses = client, own_client, list(addresses)
+
+    @classmethod
+    def create(cls, jobs: int | None = None, scheduler: Any = None):
+        """`jobs` local processes (None: all cores; 1: this process), or the workers of a Dask scheduler
+        (an address such as "tcp://host:8786", or a `distributed.Client`)."""
+        if scheduler is not None:
+            try:
+                from distributed import Client
+            except ImportError:
+                raise InputError("a Dask scheduler needs dask.distributed: pip install 'facerec3d[distributed]'") \
+                    from None
+            own = not isinstance(scheduler, Client)
+            client = Client(scheduler) if own else scheduler
+            workers = sorted(client.scheduler_info()["workers"])
+            if not workers:
+                if own:
+                    client.close()
+                raise InputError(f"the Dask scheduler {client.scheduler.address} has no workers")
+            client.run(one_thread_per_process)  # as on local workers (Dask's nanny does it for worker processes)
+            return cls([client.get_executor(workers=[w], allow_other_workers=False, pure=False) for w in workers],
+                       client, own, workers)
+        if jobs is None:
+            jobs = os.cpu_count() or 1
+        if jobs <= 1:
+            return cls([InlineExecutor()])
+        return cls([ProcessPoolExecutor(1, initializer=_init_worker) for _ in range(jobs)])
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Shut the executors (and an own Dask client) down."""
+        for ex in self.executors:
+            ex.shutdown(wait=True)
+        if self._own_client:
+            self._client.close()
+
+    @property
+    def workers(self) -> int:
+        return len(self.executors)
+
+    def imap(self, fn: Callable, items: Sequence, *args: Any, depth: int = 2) -> Iterator[Any]:
+        """fn(item, *args) for each item, in item order. The first items go one to each worker, then each worker
+        gets the next item as soon as it has fewer than `depth` in hand, so uneven calls (a cached scan, a
+        slow one) keep every worker busy. An error is raised when its item's turn comes; the calls not yet
+        started are then cancelled."""
+        items = list(items)
+        pending: dict[Future, tuple[int, int]] = {}  # future -> (item, worker)
+        done: dict[int, Future] = {}
+        following = 0
+
+        def submit(w: int) -> None:
+            nonlocal following
+            pending[self.executors[w].submit(fn, items[following], *args)] = following, w
+            following += 1
+
+        try:
+            for _ in range(depth):
+                for w in range(self.workers):
+                    if following < len(items):
+                        submit(w)
+            for i in range(len(items)):
+                while i not in done:
+                    finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+                    for f in finished:
+                        k, w = pending.pop(f)
+                        done[k] = f
+                        if following < len(items):
+                            submit(w)
+                yield done.pop(i).result()
+        finally:
+            for f in pending:
+                f.cancel()
+
+    def map(self, fn: Callable, items: Sequence, *args: Any) -> list[Any]:
+        """The list of `imap`."""
+        return list(self.imap(fn, items, *args))

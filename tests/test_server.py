@@ -1,0 +1,631 @@
+"""The gallery service (`facerec3d serve`), started as a real process on a free loopback port and called over
+real HTTP: enrol / identify / verify / remove, keys and scopes, limits (upload size, scan size, queue, time),
+corrupt input, faces preprocessed at the edge (taken as they are, or refused with other settings), the audit
+log and metrics, the CLI's --server, and kill -9 mid-enrolment with a restart that
+keeps every acknowledged entry. Plus the in-place gallery update's snapshots and the BLAS-thread cap."""
+
+import json
+import os
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+httpx = pytest.importorskip("httpx")
+pytest.importorskip("fastapi")
+pytest.importorskip("uvicorn")
+
+from click.testing import CliRunner  # noqa: E402
+
+from facerec3d.cli import main  # noqa: E402
+from facerec3d.client import Client, ServiceError  # noqa: E402
+from facerec3d.gallery.store import GalleryStore  # noqa: E402
+from facerec3d.datasets.frontal import frontal_face  # noqa: E402
+from facerec3d.io import load_scan, save_scan  # noqa: E402
+from facerec3d.matching.icp import ICPMatcher  # noqa: E402
+from facerec3d.preprocess.pipeline import PreprocessConfig, Preprocessor  # noqa: E402
+from facerec3d.server.keys import add_key, key_hash  # noqa: E402
+
+SUBJECTS = 4  # enrolled directly (templates of synthetic faces) before the service starts
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def make_gallery(path: Path) -> None:
+    """Subjects s0..s3, one template each, made directly from synthetic faces (no preprocessing)."""
+    m = ICPMatcher()
+    with GalleryStore(path, create=True) as store:
+        store.bind(PreprocessConfig(), m)
+        for s in range(SUBJECTS):
+            t = m.enroll(frontal_face(s))
+            t.subject, t.scan_id = f"s{s}", f"s{s}-gallery"
+            store.add(t, f"/synthetic/{s}")
+
+
+def probe_file(folder: Path, subject: int, seed: int) -> Path:
+    """A probe scan of a subject (moved ≤ 3° / 3 mm, 0.3 mm noise) as an .npz file (~150 KB)."""
+    path = folder / f"probe-{subject}-{seed}.npz"
+    if not path.exists():
+        save_scan(frontal_face(subject, pose_deg=3.0, shift_mm=3.0, noise_mm=0.3, seed=seed), path)
+    return path
+
+
+class Server:
+    """`facerec3d serve` as a child process on a free loopback port."""
+
+    def __init__(self, gallery: Path, keys: Path, *options: str):
+        self.gallery, self.keys, self.options = gallery, keys, options
+        self.start()
+
+    def start(self) -> None:
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.log = open(self.gallery.with_suffix(f".{self.port}.log"), "w+")
+        self.proc = subprocess.Popen([sys.executable, "-m", "facerec3d.cli", "serve", "--gallery", str(self.gallery),
+                                      "--keys", str(self.keys), "--port", str(self.port), *self.options],
+                                     stdout=self.log, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + 180
+        while True:
+            if self.proc.poll() is not None:
+                self.log.seek(0)
+                raise RuntimeError(f"the service exited with {self.proc.returncode}:\n{self.log.read()}")
+            try:
+                if httpx.get(f"{self.url}/v1/health", timeout=2).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                pass
+            assert time.monotonic() < deadline, "the service did not start"
+            time.sleep(0.2)
+
+    def output(self) -> str:
+        self.log.flush()
+        return Path(self.log.name).read_text()
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self.log.close()
+
+    def kill9(self) -> None:
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait()
+        self.log.close()
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    """A gallery of 4 subjects, keys with different scopes, and a running service (2 worker processes, small
+    limits: 1 MiB uploads, 50,000-point scans, 2 requests at once + 2 waiting, 2 per key)."""
+    tmp = tmp_path_factory.mktemp("service")
+    gallery, keys = tmp / "g.sqlite", tmp / "keys.json"
+    make_gallery(gallery)
+    key = {name: add_key(keys, name, scopes) for name, scopes in
+           [("alice", "enrol,query,admin"), ("bob", "query"), ("carol", "enrol"), ("dave", "query"),
+            ("erin", "query")]}
+    server = Server(gallery, keys, "--jobs", "2", "--concurrency", "2", "--queue", "2", "--per-key", "2",
+                    "--max-upload-mb", "1", "--max-points", "50000", "--timeout", "120")
+    yield {"tmp": tmp, "gallery": gallery, "keys": keys, "key": key, "server": server, "url": server.url}
+    server.stop()
+
+
+def call(setup, method, path, key="alice", **kw):
+    headers = kw.pop("headers", {})
+    if key is not None:
+        headers["X-API-Key"] = setup["key"].get(key, key)
+    return httpx.request(method, setup["url"] + path, headers=headers, timeout=120, **kw)
+
+
+def assert_error(r, status: int, *words: str) -> dict:
+    """A one-line JSON error with this status whose reason has these words."""
+    assert r.status_code == status, r.text
+    assert "\n" not in r.text.strip()
+    body = r.json()
+    assert body["status"] == status and isinstance(body["error"], str) and body["error"]
+    for w in words:
+        assert w in body["error"], body["error"]
+    return body
+
+
+def healthy(setup) -> None:
+    r = httpx.get(setup["url"] + "/v1/health", timeout=10)
+    assert r.status_code == 200 and r.json()["status"] == "ok"
+
+
+def test_enrol_identify_verify_remove(setup):
+    tmp = setup["tmp"]
+    with Client(setup["url"], setup["key"]["alice"]) as c:
+        assert c.health()["entries"] == SUBJECTS
+        for cascade in (False, True):
+            answer = c.identify(probe_file(tmp, 2, 100), k=3, cascade=cascade)
+            assert answer["cascade"] is cascade and answer["gallery_entries"] == SUBJECTS
+            best = answer["candidates"][0]
+            assert (best["rank"], best["subject"], best["scan_id"]) == (1, "s2", "s2-gallery")
+            assert len(answer["candidates"]) == 3 and answer["candidates"][0]["score"] > answer["candidates"][1]["score"]
+            assert answer["timings"]["preprocess_ms"] > 0 and answer["timings"]["match_ms"] > 0
+        # a new subject: enrolled, then found, verified, removed
+        new = probe_file(tmp, 7, 1)
+        entry = c.enrol(new, subject="s7")
+        assert entry["subject"] == "s7" and entry["scan_id"] == new.name[:-4] and entry["source"].startswith("upload:sha256:")
+        with pytest.raises(ServiceError) as e:  # the same bytes again
+            c.enrol(new, subject="s7")
+        assert e.value.status == 409 and f"entry {entry['id']}" in e.value.reason
+        probe = probe_file(tmp, 7, 2)
+        assert c.identify(probe, k=1)["candidates"][0]["entry"] == entry["id"]
+        v = c.verify(probe, claim="s7")
+        assert v["accepted"] is True and v["threshold"] == -1.0 and v["score"] >= -1.0
+        v = c.verify(probe, claim="s1", threshold=-0.5)
+        assert v["accepted"] is False and v["threshold"] == -0.5 and v["score"] < -0.5
+        with pytest.raises(ServiceError) as e:
+            c.verify(probe, claim="nobody")
+        assert e.value.status == 404 and "not enrolled" in e.value.reason
+        assert {"subject": "s7", "entries": 1} in c.subjects()
+        removed = c.remove("s7")
+        assert removed["removed"] == [entry["id"]] and removed["subjects"] == ["s7"]
+        assert "s7" not in {s["subject"] for s in c.subjects()}
+        assert c.identify(probe, k=1)["candidates"][0]["subject"] != "s7"
+        with pytest.raises(ServiceError) as e:
+            c.remove("s7")
+        assert e.value.status == 404
+        st = c.stats()
+        assert st["entries"] == SUBJECTS and st["method"] == "icp" and len(st["preprocess_fingerprint"]) == 16
+        assert "failures_to_enrol" in st and st["queue"]["capacity"] == 4
+    # the store holds what the service said (read while it runs: WAL)
+    with GalleryStore(setup["gallery"]) as store:
+        assert [e.subject for e in store.entries()] == [f"s{s}" for s in range(SUBJECTS)]
+    audit = [json.loads(line) for line in Path(str(setup["gallery"]) + ".audit.jsonl").read_text().splitlines()]
+    mine = [a for a in audit if a.get("subject") == "s7" or a.get("ident") == "s7"]
+    assert [a["action"] for a in mine] == ["enrol", "remove"]
+    assert all(a["key"] == "alice" and a["client"] == "127.0.0.1" and a["time"].endswith("Z") for a in mine)
+    assert mine[0]["entry"] == entry["id"] and mine[1]["entries"] == [entry["id"]]
+
+
+def test_keys_and_scopes(setup):
+    tmp = setup["tmp"]
+    probe = probe_file(tmp, 1, 100)
+    files = {"probe": (probe.name, probe.read_bytes())}
+    assert_error(call(setup, "POST", "/v1/identify", key=None, files=files), 401, "API key")
+    assert_error(call(setup, "POST", "/v1/identify", key="fr3d_not-a-key", files=files), 401, "unknown")
+    assert_error(call(setup, "GET", "/v1/stats", key=None), 401)
+    assert_error(call(setup, "GET", "/metrics", key=None), 401)
+    # scopes: carol may enrol only, bob may query only
+    assert_error(call(setup, "POST", "/v1/identify", key="carol", files=files), 403, "carol", "query")
+    scan = {"scan": (probe.name, probe.read_bytes())}
+    assert_error(call(setup, "POST", "/v1/enrol", key="bob", files=scan, data={"subject": "x"}), 403, "bob", "enrol")
+    assert_error(call(setup, "DELETE", "/v1/subjects/s1", key="bob"), 403, "admin")
+    assert_error(call(setup, "GET", "/v1/subjects", key="bob"), 403, "admin")
+    r = call(setup, "POST", "/v1/identify", key="bob", files=files, data={"k": "1"})
+    assert r.status_code == 200 and r.json()["candidates"][0]["subject"] == "s1"
+    r = call(setup, "GET", "/v1/stats", key=None, headers={"Authorization": f"Bearer {setup['key']['bob']}"})
+    assert r.status_code == 200
+    # keys are stored as hashes only; denied writes are audited
+    text = setup["keys"].read_text()
+    assert all(k not in text and key_hash(k) in text for k in setup["key"].values())
+    assert oct(setup["keys"].stat().st_mode & 0o777) == "0o600"
+    audit = Path(str(setup["gallery"]) + ".audit.jsonl").read_text()
+    assert '"action":"denied","key":"bob"' in audit
+    # the service re-reads the key file: a new key works at once, a revoked one no longer
+    r = CliRunner().invoke(main, ["keys", "add", "frank", "--scopes", "query", "--keys", str(setup["keys"])])
+    assert r.exit_code == 0, r.output
+    frank = r.stdout.strip().splitlines()[0]
+    assert frank.startswith("fr3d_") and frank not in setup["keys"].read_text()
+    assert call(setup, "GET", "/v1/stats", key=frank).status_code == 200
+    r = CliRunner().invoke(main, ["keys", "list", "--keys", str(setup["keys"])])
+    assert "frank\tquery" in r.output and frank not in r.output
+    r = CliRunner().invoke(main, ["keys", "remove", "frank", "--keys", str(setup["keys"])])
+    assert r.exit_code == 0
+    assert_error(call(setup, "GET", "/v1/stats", key=frank), 401)
+    r = CliRunner().invoke(main, ["keys", "add", "x", "--scopes", "everything", "--keys", str(setup["keys"])])
+    assert r.exit_code == 2 and "unknown scope" in r.output
+
+
+def test_bad_uploads_are_4xx_json_and_the_service_keeps_serving(setup):
+    tmp = setup["tmp"]
+    corrupt = [("junk.abs", b"not a range image\n" * 20), ("junk.npz", os.urandom(5000)),
+               ("junk.ply", b"ply\nformat binary_little_endian 1.0\nelement vertex 99999999\n"),
+               ("truncated.abs.gz", b"\x1f\x8b\x08\x00" + os.urandom(100))]
+    for name, data in corrupt:
+        body = assert_error(call(setup, "POST", "/v1/identify", files={"probe": (name, data)}), 422, name)
+        assert "/tmp" not in body["error"]  # the reason, never the service's temporary path
+        body = assert_error(call(setup, "POST", "/v1/enrol", files={"scan": (name, data)}, data={"subject": "bad"}),
+                            422, "failure to enrol", name)
+        healthy(setup)
+    assert_error(call(setup, "POST", "/v1/identify", files={"probe": ("scan.exe", b"MZ" * 100)}), 415, ".exe")
+    assert_error(call(setup, "POST", "/v1/identify", files={"probe": ("empty.npz", b"")}), 422, "empty")
+    assert_error(call(setup, "POST", "/v1/identify", data={"k": "3"}), 422, "probe")
+    probe = probe_file(tmp, 3, 100)
+    assert_error(call(setup, "POST", "/v1/identify", files={"probe": (probe.name, probe.read_bytes())},
+                      data={"k": "0"}), 422, "k")
+    assert_error(call(setup, "POST", "/v1/enrol", files={"scan": (probe.name, probe.read_bytes())},
+                      data={"subject": "../../etc"}), 422, "subject")
+    # over the upload limit (1 MiB): refused from Content-Length, and while a chunked upload streams in
+    big = os.urandom(2 * 2**20)
+    assert_error(call(setup, "POST", "/v1/identify", files={"probe": ("big.npz", big)}), 413, "limit")
+
+    def chunks():  # a well-formed multipart body, streamed without a Content-Length
+        yield (b'--xyz\r\nContent-Disposition: form-data; name="probe"; filename="big.npz"\r\n'
+               b"Content-Type: application/octet-stream\r\n\r\n")
+        for i in range(0, len(big), 65536):
+            yield big[i:i + 65536]
+        yield b"\r\n--xyz--\r\n"
+
+    r = call(setup, "POST", "/v1/identify", content=chunks(),
+             headers={"Content-Type": "multipart/form-data; boundary=xyz"})
+    assert_error(r, 413, "limit")
+    # over the scan size limit (50,000 points)
+    cloud = tmp / "cloud.npy"
+    np.save(cloud, np.random.default_rng(0).normal(0, 50, (60000, 3)).astype(np.float32))
+    assert_error(call(setup, "POST", "/v1/identify", files={"probe": ("cloud.npy", cloud.read_bytes())}), 413,
+                 "60000 points")
+    # a file name is a label, never a path on the service
+    r = call(setup, "POST", "/v1/identify", files={"probe": ("../../../../tmp/evil.npz", probe.read_bytes())},
+             data={"k": "1"})
+    assert r.status_code == 200 and r.json()["candidates"][0]["subject"] == "s3"
+    assert not Path("/tmp/evil.npz").exists()
+    openapi = call(setup, "GET", "/openapi.json", key=None).json()
+    assert {"/v1/enrol", "/v1/identify", "/v1/verify", "/v1/subjects", "/v1/subjects/{ident}", "/v1/health",
+            "/v1/stats", "/v1/entries", "/metrics"} <= set(openapi["paths"])
+    fields = {f for name, schema in openapi["components"]["schemas"].items() if name.startswith("Body_")
+              for f in schema["properties"]}
+    assert fields == {"scan", "probe", "subject", "scan_id", "format", "intrinsics", "k", "cascade", "shortlist",
+                      "claim", "threshold"}  # nothing names a file on the service
+    # the failures to enrol were recorded, the service still answers
+    listed = call(setup, "GET", "/v1/entries").json()
+    assert len(listed["failures"]) >= len(corrupt) and all(f["source"].startswith("upload:") for f in listed["failures"])
+    healthy(setup)
+
+
+def test_queue_limits_and_time_limit(setup):
+    """2 at once + 2 waiting, 2 per key: a key's third request is 429, a fifth request is 503; a request past
+    its time limit is 504; all one-line JSON, and the service goes on."""
+    tmp = setup["tmp"]
+    probe = probe_file(tmp, 0, 100)
+    files = {"probe": (probe.name, probe.read_bytes())}
+
+    def busy() -> int:
+        q = call(setup, "GET", "/v1/stats", key="erin").json()["queue"]
+        return q["running"] + q["waiting"]
+
+    def wait_busy(n: int) -> None:
+        deadline = time.monotonic() + 20
+        while busy() < n:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+
+    with ThreadPoolExecutor(4) as pool:
+        slow = [pool.submit(call, setup, "POST", "/v1/identify", key="alice", files=files) for _ in range(2)]
+        wait_busy(2)
+        r = call(setup, "POST", "/v1/identify", key="alice", files=files)
+        assert_error(r, 429, "alice")
+        assert r.headers["retry-after"]
+        slow += [pool.submit(call, setup, "POST", "/v1/identify", key="bob", files=files) for _ in range(2)]
+        wait_busy(4)
+        r = call(setup, "POST", "/v1/identify", key="dave", files=files)
+        assert_error(r, 503, "queue is full")
+        assert [f.result().status_code for f in slow] == [200] * 4
+    r = call(setup, "POST", "/v1/identify", files=files, headers={"X-Request-Timeout": "0.05"})
+    assert_error(r, 504, "time limit")
+    metrics = call(setup, "GET", "/metrics").text
+    assert 'facerec3d_requests_total{method="POST",endpoint="/v1/identify",status="429"}' in metrics
+    assert 'facerec3d_requests_total{method="POST",endpoint="/v1/identify",status="503"}' in metrics
+    assert "facerec3d_queue_length " in metrics and "facerec3d_request_duration_seconds_bucket" in metrics
+    deadline = time.monotonic() + 30
+    while busy():  # the abandoned request's work drains away
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    assert call(setup, "POST", "/v1/identify", files=files).status_code == 200
+
+
+def test_identification_during_enrolment_sees_whole_versions(setup):
+    """Enrolments and identifications at once: each identification answers from one gallery version, whose
+    size is the one that version had (before or after an enrolment, never between)."""
+    tmp = setup["tmp"]
+    health = call(setup, "GET", "/v1/health").json()
+    base = health["entries"]
+    size = {health["gallery_version"]: base}
+    scans = [probe_file(tmp, 20 + i, 1) for i in range(2)]
+    probe = probe_file(tmp, 1, 101)
+    with Client(setup["url"], setup["key"]["alice"]) as enroller, Client(setup["url"], setup["key"]["bob"]) as asker:
+        def enrol_all():
+            out = []
+            for i, s in enumerate(scans):
+                out.append(enroller.enrol(s, subject=f"new{i}"))
+            return out
+
+        with ThreadPoolExecutor(2) as pool:
+            enrolled = pool.submit(enrol_all)
+            answers = [asker.identify(probe, k=10) for _ in range(3)]
+            enrolled = enrolled.result()
+        for i, e in enumerate(enrolled):
+            size[e["gallery_version"]] = base + i + 1
+        for a in answers:
+            assert a["gallery_entries"] == size[a["gallery_version"]]
+            assert len(a["candidates"]) == a["gallery_entries"]
+            assert a["candidates"][0]["subject"] == "s1"
+        for i in range(len(scans)):
+            enroller.remove(f"new{i}")
+
+
+def test_cli_against_the_service(setup):
+    tmp, url = setup["tmp"], setup["url"]
+    run = CliRunner(env={"FACEREC3D_API_KEY": setup["key"]["alice"]})
+    scans = [probe_file(tmp, 30, 1), probe_file(tmp, 30, 2)]
+    bad = tmp / "broken.abs"
+    bad.write_text("not a range image\n")
+    r = run.invoke(main, ["enroll", *map(str, scans), str(bad), "--server", url, "--subject", "s30", "--jobs", "2"])
+    assert r.exit_code == 0, r.output
+    assert "2 enrolled, 0 already enrolled, 1 failed to enrol" in r.output and "broken.abs" in r.output
+    r = run.invoke(main, ["enroll", str(scans[0]), "--server", url, "--subject", "s30"])
+    assert "0 enrolled, 1 already enrolled" in r.output
+    r = run.invoke(main, ["identify", str(probe_file(tmp, 30, 3)), "--server", url, "-k", "2", "--cascade"])
+    assert r.exit_code == 0, r.output
+    assert r.output.splitlines()[1].split()[:2] == ["1", "s30"] and len(r.output.splitlines()) == 3
+    r = run.invoke(main, ["verify", str(probe_file(tmp, 30, 3)), "--server", url, "--claim", "s30"])
+    assert r.exit_code == 0 and r.output.startswith("accept"), r.output
+    r = run.invoke(main, ["verify", str(probe_file(tmp, 30, 3)), "--server", url, "--claim", "s2"])
+    assert r.exit_code == 1 and r.output.startswith("reject"), r.output
+    r = run.invoke(main, ["gallery", "--server", url, "stats"])
+    assert r.exit_code == 0 and f"{SUBJECTS + 2} entries of {SUBJECTS + 1} subjects" in r.output
+    r = run.invoke(main, ["gallery", "--server", url, "list"])
+    assert r.exit_code == 0 and sum("\ts30\t" in line for line in r.output.splitlines()) == 2
+    r = run.invoke(main, ["gallery", "--server", url, "remove", "s30"])
+    assert r.exit_code == 0 and "removed 2 entries" in r.output
+    r = run.invoke(main, ["gallery", "--server", url, "remove", "s30"])
+    assert r.exit_code == 2 and "no subject or scan" in r.output
+    # the key from --api-key; wrong keys and scopes are one line, exit code 2
+    r = CliRunner().invoke(main, ["identify", str(scans[0]), "--server", url, "--api-key", setup["key"]["carol"]])
+    assert r.exit_code == 2 and "403" in r.output and "Traceback" not in r.output
+    r = CliRunner(env={"FACEREC3D_API_KEY": "fr3d_wrong"}).invoke(main, ["gallery", "--server", url, "list"])
+    assert r.exit_code == 2 and "401" in r.output
+    r = run.invoke(main, ["identify", str(scans[0]), "--server", url, "--gallery", str(setup["gallery"])])
+    assert r.exit_code == 2 and "cannot be used with --server" in r.output
+    r = run.invoke(main, ["identify", str(scans[0])])
+    assert r.exit_code == 2 and "--gallery" in r.output
+
+
+def preprocessed_file(folder: Path, raw: Path, config: PreprocessConfig = PreprocessConfig(), name: str = "") -> Path:
+    """The face `facerec3d preprocess` would write for scan `raw` under `config` (an .npz recording its
+    preprocess_fingerprint)."""
+    path = folder / f"face-{name or raw.stem}.npz"
+    if not path.exists():
+        save_scan(Preprocessor(config)(load_scan(raw)), path)
+    return path
+
+
+def uploads(setup) -> dict:
+    return call(setup, "GET", "/v1/stats", key="erin").json()["uploads"]
+
+
+def test_preprocessed_upload_is_matched_without_preprocessing_again(setup):
+    """A face preprocessed at the edge with the service's settings identifies, verifies and enrols like its raw
+    scan, with the service's preprocessing skipped (the answer's preprocessed_upload, the stats' counts); the
+    Python client and the CLI do it with preprocess_locally / --preprocess-locally."""
+    tmp, url = setup["tmp"], setup["url"]
+    raw = probe_file(tmp, 2, 100)
+    face = preprocessed_file(tmp, raw)
+    st = call(setup, "GET", "/v1/stats", key="erin").json()
+    assert load_scan(face).meta.extra["preprocess_fingerprint"] == st["preprocess_fingerprint"] \
+        == PreprocessConfig().digest()
+    before = uploads(setup)
+    by_raw = call(setup, "POST", "/v1/identify", files={"probe": (raw.name, raw.read_bytes())}, data={"k": "4"})
+    by_face = call(setup, "POST", "/v1/identify", files={"probe": (face.name, face.read_bytes())}, data={"k": "4"})
+    assert by_raw.status_code == 200 and by_face.status_code == 200, (by_raw.text, by_face.text)
+    by_raw, by_face = by_raw.json(), by_face.json()
+    assert by_raw["preprocessed_upload"] is False and by_face["preprocessed_upload"] is True
+    # the same face: the same ranking and (up to rounding) the same scores as when the service preprocessed it
+    assert [c["subject"] for c in by_face["candidates"]] == [c["subject"] for c in by_raw["candidates"]]
+    assert by_face["candidates"][0]["subject"] == "s2"
+    assert [c["score"] for c in by_face["candidates"]] == pytest.approx([c["score"] for c in by_raw["candidates"]],
+                                                                       rel=1e-3, abs=1e-3)
+    # the service's preprocessing (hundreds of ms) skipped: what remains is the check of the face
+    assert by_raw["timings"]["preprocess_ms"] > 100 and by_face["timings"]["preprocess_ms"] < 50
+    after = uploads(setup)
+    assert (after["raw"] - before["raw"], after["preprocessed"] - before["preprocessed"]) == (1, 1)
+    with Client(url, setup["key"]["alice"]) as c:
+        a = c.identify(raw, k=1, cascade=True, preprocess_locally=True)
+        assert a["preprocessed_upload"] is True and a["cascade"] is True and a["candidates"][0]["subject"] == "s2"
+        v = c.verify(raw, claim="s2", preprocess_locally=True)
+        assert v["preprocessed_upload"] is True and v["accepted"] is True
+        assert c.verify(face, claim="s1")["accepted"] is False  # a preprocessed file is uploaded as it is
+        new = probe_file(tmp, 8, 1)
+        entry = c.enrol(new, subject="s8", preprocess_locally=True)
+        assert entry["preprocessed_upload"] is True and entry["scan_id"] == new.stem
+        found = c.identify(probe_file(tmp, 8, 2), k=1)  # a raw probe finds the face enrolled from the edge
+        assert found["preprocessed_upload"] is False and found["candidates"][0]["entry"] == entry["id"]
+        assert c.remove("s8")["removed"] == [entry["id"]]
+    assert uploads(setup)["preprocessed"] - after["preprocessed"] == 4
+    run = CliRunner(env={"FACEREC3D_API_KEY": setup["key"]["alice"]})
+    r = run.invoke(main, ["identify", str(raw), "--server", url, "-k", "2", "--cascade", "--preprocess-locally"])
+    assert r.exit_code == 0, r.output
+    assert r.output.splitlines()[1].split()[:2] == ["1", "s2"] and len(r.output.splitlines()) == 3
+    r = run.invoke(main, ["verify", str(raw), "--server", url, "--claim", "s2", "--preprocess-locally"])
+    assert r.exit_code == 0 and r.output.startswith("accept"), r.output
+    assert uploads(setup)["preprocessed"] - after["preprocessed"] == 6
+    r = run.invoke(main, ["identify", str(raw), "--gallery", str(setup["gallery"]), "--preprocess-locally"])
+    assert r.exit_code == 2 and "--server only" in r.output
+
+
+def test_preprocessed_upload_with_other_settings_is_refused(setup):
+    """A face preprocessed with settings other than the gallery's (another fingerprint, or none recorded) is
+    422 with both fingerprints in the reason — never preprocessed twice, never a failure to enrol — and a
+    face off the gallery's grid is 422 too; the service keeps serving."""
+    tmp = setup["tmp"]
+    raw = probe_file(tmp, 3, 100)
+    other = PreprocessConfig(crop_radius_mm=70.0)
+    face = preprocessed_file(tmp, raw, other, "other-settings")
+    own = PreprocessConfig().digest()
+    assert load_scan(face).meta.extra["preprocess_fingerprint"] == other.digest() != own
+    failures = len(call(setup, "GET", "/v1/entries").json()["failures"])
+    before = uploads(setup)
+    body = assert_error(call(setup, "POST", "/v1/identify", files={"probe": (face.name, face.read_bytes())}), 422,
+                        face.name, "other settings", other.digest(), own, "raw scan")
+    assert "/tmp" not in body["error"]
+    assert_error(call(setup, "POST", "/v1/verify", files={"probe": (face.name, face.read_bytes())},
+                      data={"claim": "s3"}), 422, other.digest(), own)
+    body = assert_error(call(setup, "POST", "/v1/enrol", files={"scan": (face.name, face.read_bytes())},
+                             data={"subject": "s3x"}), 422, other.digest(), own)
+    assert "failure to enrol" not in body["error"]
+    # a face from a facerec3d that recorded no fingerprint: its settings are unknown
+    old = load_scan(preprocessed_file(tmp, raw))
+    extra = {k: v for k, v in old.meta.extra.items() if k != "preprocess_fingerprint"}
+    unknown = tmp / "face-no-fingerprint.npz"
+    save_scan(old.replace(meta=old.meta.replace(extra=extra)), unknown)
+    assert_error(call(setup, "POST", "/v1/identify", files={"probe": (unknown.name, unknown.read_bytes())}), 422,
+                 "unknown settings", own)
+    # the right fingerprint on a face off the resampling grid (a point cloud): refused, not matched
+    cloud = tmp / "face-cloud.npz"
+    save_scan(old.replace(grid=None, grid_shape=None), cloud)
+    assert_error(call(setup, "POST", "/v1/identify", files={"probe": (cloud.name, cloud.read_bytes())}), 422,
+                 "resampling grid")
+    assert uploads(setup) == before  # none of them was used
+    assert len(call(setup, "GET", "/v1/entries").json()["failures"]) == failures  # no failure to enrol recorded
+    healthy(setup)
+    r = call(setup, "POST", "/v1/identify", files={"probe": (raw.name, raw.read_bytes())}, data={"k": "1"})
+    assert r.status_code == 200 and r.json()["candidates"][0]["subject"] == "s3"
+
+
+def test_serves_on_loopback_by_default(setup):
+    out = setup["server"].output()
+    assert f"on http://127.0.0.1:{setup['server'].port}" in out
+    assert next(p for p in main.commands["serve"].params if p.name == "host").default == "127.0.0.1"
+    try:
+        outside = socket.gethostbyname(socket.gethostname())
+    except OSError:
+        outside = None
+    if outside and not outside.startswith("127."):
+        with pytest.raises(OSError):
+            socket.create_connection((outside, setup["server"].port), timeout=2).close()
+
+
+def test_kill_9_mid_enrolment_loses_no_acknowledged_entry(tmp_path):
+    """Enrolments stream in from 3 clients; the service is killed (SIGKILL) right after the second
+    acknowledgement, with more in flight; after a restart every acknowledged entry is there, whole, and the
+    store is intact."""
+    gallery, keys = tmp_path / "g.sqlite", tmp_path / "keys.json"
+    make_gallery(gallery)
+    key = add_key(keys, "writer", "enrol,query,admin")
+    scans = [probe_file(tmp_path, 40 + i, 1) for i in range(9)]
+    server = Server(gallery, keys, "--jobs", "1", "--concurrency", "3")
+    acked: list[dict] = []
+    lock = threading.Lock()
+    try:
+        def writer(mine):
+            with Client(server.url, key, retries=0) as c:
+                for s in mine:
+                    try:
+                        entry = c.enrol(s, subject=s.stem.split("-")[1])
+                    except ServiceError:  # the service went away
+                        return
+                    with lock:
+                        acked.append(entry)
+
+        threads = [threading.Thread(target=writer, args=(scans[i::3],)) for i in range(3)]
+        for t in threads:
+            t.start()
+        deadline = time.monotonic() + 120
+        while len(acked) < 2:
+            assert time.monotonic() < deadline and server.proc.poll() is None
+            time.sleep(0.005)
+        server.kill9()
+        for t in threads:
+            t.join()
+    finally:
+        if server.proc.poll() is None:
+            server.kill9()
+    assert server.proc.returncode == -signal.SIGKILL and 2 <= len(acked) < len(scans)
+    db = sqlite3.connect(gallery)
+    assert db.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+    assert db.execute("SELECT COUNT(*) FROM entries WHERE id NOT IN (SELECT entry FROM arrays)").fetchone()[0] == 0
+    db.close()
+    server.start()  # the same store, restarted
+    try:
+        with Client(server.url, key) as c:
+            listed = {e["id"]: e for e in c.entries()["entries"]}
+            for entry in acked:
+                assert listed[entry["id"]]["source"] == entry["source"]
+                assert listed[entry["id"]]["subject"] == entry["subject"]
+            assert len(listed) >= SUBJECTS + len(acked)
+            last = acked[-1]
+            probe = next(s for s in scans if s.stem.split("-")[1] == last["subject"])
+            hit = c.identify(probe, k=1)["candidates"][0]
+            assert hit["entry"] == last["id"] and hit["score"] > -1e-6  # the same scan, whole
+    finally:
+        server.stop()
+
+
+# ------------------------------------------------------------------------------- in-process pieces
+def test_gallery_update_keeps_snapshots_consistent():
+    """ShardedGallery.update: the old version stays whole for probes using it; the new one scores as a
+    gallery loaded from scratch would, in its order."""
+    from facerec3d.gallery.cascade import CascadeConfig
+    from facerec3d.gallery.engine import Engine
+
+    m = ICPMatcher()
+    templates = [m.enroll(frontal_face(s)) for s in range(5)]
+    probe_face = frontal_face(3, pose_deg=3.0, shift_mm=3.0, noise_mm=0.3, seed=9)
+    with Engine.create(2) as engine:
+        old = engine.load(m, templates[:3])
+        old.describe(CascadeConfig())
+        probe = engine.prepare(m, [probe_face], CascadeConfig())
+        before = old.scores(probe)[0][0]
+        new, order = old.update(add=templates[3:], remove=[1])
+        assert len(new) == 4 and sorted(order.tolist()) == [0, 2, 3, 4]
+        np.testing.assert_array_equal(old.scores(probe)[0][0], before)  # the snapshot is unchanged
+        combined = templates[:3] + templates[3:]
+        fresh = engine.load(m, [combined[i] for i in order])
+        np.testing.assert_array_equal(new.scores(probe)[0][0], fresh.scores(probe)[0][0])
+        (a,), (b,) = new.cascade(probe, CascadeConfig(shortlist=2)), fresh.cascade(probe, CascadeConfig(shortlist=2))
+        for x, y in zip(a, b):  # scores, tiebreak, shortlist
+            np.testing.assert_array_equal(x, y)
+        at = new.scores_at(probe[0], [1, 3])
+        np.testing.assert_array_equal(at[0], new.scores(probe)[0][0][[1, 3]])
+        old.release()
+        assert new.scores(probe)[0][0].shape == (4,)  # still loaded after the old version went
+        emptied, _ = new.update(remove=range(4))
+        assert len(emptied) == 0
+
+
+def test_single_probe_commands_use_one_blas_thread(tmp_path, monkeypatch):
+    from threadpoolctl import threadpool_info
+
+    import facerec3d.gallery.service as service
+    import facerec3d.preprocess as preprocess
+
+    seen = []
+
+    def spy(fn):
+        def wrapped(*args, **kwargs):
+            seen.append(max((p["num_threads"] for p in threadpool_info()), default=1))
+            return fn(*args, **kwargs)
+        return wrapped
+
+    monkeypatch.setattr(service, "load_probe", spy(service.load_probe))
+    monkeypatch.setattr(preprocess.Preprocessor, "__call__", spy(preprocess.Preprocessor.__call__))
+    gallery = tmp_path / "g.sqlite"
+    make_gallery(gallery)
+    probe = probe_file(tmp_path, 2, 5)
+    run = CliRunner()
+    r = run.invoke(main, ["identify", str(probe), "--gallery", str(gallery), "--jobs", "1", "-k", "1",
+                          "--cache", str(tmp_path / "c")])
+    assert r.exit_code == 0 and r.output.splitlines()[1].split()[1] == "s2", r.output
+    r = run.invoke(main, ["verify", str(probe), "--gallery", str(gallery), "--claim", "s2", "--cache", str(tmp_path / "c2")])
+    assert r.exit_code == 0, r.output
+    r = run.invoke(main, ["view", str(probe), "-o", str(tmp_path / "v.png")])
+    assert r.exit_code == 0, r.output
+    assert len(seen) >= 3 and set(seen) == {1}
