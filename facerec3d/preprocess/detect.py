@@ -59,8 +59,8 @@ class DetectConfig:
     tip_radius_mm: float = 8.0  # protrusion: scan points this near the nose axis give the tip's height ...
     ring_mm: tuple[float, float] = (20.0, 35.0)  # ... above the plane through the points this far from it
     min_dome_mm: float = 3.0  # ... and, where that ring is whole, above the dome through it (plane + κ r²): a
-    #                           rounded surface (the back of a head, ~4 mm above its plane) stands ~0 above its dome,
-    #                           a nose ≥ 4 (real Kinect v2 frames, rap3df-2019 tuning half)
+    #                           rounded surface (the synthetic back of a head, ~4-6 mm above its plane) stands ≤ 1.6
+    #                           above its dome; on rap3df-2019 this test rejected 2 of the 521 real frames
     start_yaws: tuple[float, ...] = (-70.0, -35.0, 0.0, 35.0, 70.0)  # degrees: coarse fits start from the Hotelling
     #                                                                   frame turned so (a head in profile) ...
     frontal_yaw: float = 40.0  # ... those of at most this yaw for candidates inside the surface, all for those at its rim
