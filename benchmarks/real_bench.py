@@ -27,10 +27,13 @@ Systems, all scored on the same frames in the same run (score: higher = more sim
   with the 6 mm voxel ~14 ms, ~4.5 min. A 2 mm voxel, the usual choice, would remove nothing: a
   pixel is 2.7-3.8 mm wide at these distances. On the tuning half the voxel left rank-1
   front+burned unchanged (59.1 %) and moved rank-1 all from 38.7 % to 40.2 %.
-- each facerec3d method of `--methods` (default `icp`), run through `facerec3d.evaluation.run.evaluate`
+- each facerec3d method of `--methods` (default `icp`; `NAME` with the `--options` settings, or
+  `NAME=settings.toml`, reported as NAME:stem-of-the-file), run through `facerec3d.evaluation.run.evaluate`
   on the same manifest with no preprocessing cache (`cache=None`), so its preprocessing is really
   measured; its score matrix is read back from the run's `scores.txt`. A method that raises is
-  reported as failed (one line) and the benchmark goes on.
+  reported as failed (one line) and the benchmark goes on. Learnt methods (pca, lda, a fusion with them) are
+  trained on `--train` (default: a synthetic kinect-v2 set of 60 generator identities x 5 scans, written under
+  bench-out/data/train-kinect-v2 on first use): no real person is both trained on and tested.
 
 A frame that gives no face (no valid pixel, no nose, or fewer than MIN_POINTS = 100 points in the
 crop) is a failure to acquire (probe, FTA) or to enrol (gallery, FTE): every comparison with it
@@ -302,8 +305,38 @@ def numba_cache_warm() -> bool:
     return any(Path(facerec3d.__file__).parent.rglob("__pycache__/*.nbi"))
 
 
+def method_specs(text: str, options: dict | None) -> list[tuple[str, str, dict | None]]:
+    """(label, method, settings) of each `--methods` entry: `name` (with the --options settings; label = name) or
+    `name=settings.toml` (label = name:stem of the file), as methods_bench takes them."""
+    from facerec3d.config import read_settings
+
+    specs = []
+    for item in (m.strip() for m in text.split(",")):
+        if item:
+            method, _, config = item.partition("=")
+            specs.append((f"{method}:{Path(config).stem}" if config else method, method,
+                          read_settings(config) if config else options))
+    if len({label for label, _, _ in specs}) < len(specs):
+        raise SystemExit(f"real_bench: --methods names a system twice: {text}")
+    return specs
+
+
+def training_set(root: Path) -> Path:
+    """The training set of learnt methods (PCA, LDA): synthetic Kinect v2 frames of 60 generator identities x 5
+    scans (subjects numbered from 1000, seed 1; no real person in it), written under `root` once. Training on real
+    subjects would need people outside the test set, which a 80-person set cannot spare."""
+    from facerec3d.datasets.synthetic import DatasetConfig, sensor_profile, write_dataset
+
+    if not (root / "manifest.csv").is_file():
+        print(f"  writing the training set {root} (60 x 5 synthetic kinect-v2 scans) ...", flush=True)
+        write_dataset(root, DatasetConfig(subjects=60, scans=5, first_subject=1000, seed=1,
+                                          scanner=sensor_profile("kinect-v2")), "abs")
+    return root
+
+
 def run_method(method: str, data: Path, gallery_rows: list, probe_rows: list, out: Path, jobs: int,
-               cache: Path | None = None, options: dict | None = None) -> dict:
+               cache: Path | None = None, options: dict | None = None, label: str | None = None,
+               train: Path | None = None) -> dict:
     """One facerec3d method through its Python API; the score matrix rebuilt from scores.txt.
 
     Rows of scores.txt are paired with the manifest's probes by (real_id, probe_label), label = the
@@ -315,10 +348,11 @@ def run_method(method: str, data: Path, gallery_rows: list, probe_rows: list, ou
 
     warm = numba_cache_warm()
     t0 = time.perf_counter()
-    metrics = evaluate(data / "manifest.csv", method=method, out=out / method, jobs=jobs, progress=False,
-                       cache=cache, options=options)
+    label = label or method
+    metrics = evaluate(data / "manifest.csv", method=method, out=out / label, jobs=jobs, progress=False,
+                       cache=cache, options=options, train=train)
     wall_s = time.perf_counter() - t0
-    rows = read_score_rows(out / method / "scores.txt")
+    rows = read_score_rows(out / label / "scores.txt")
     probe_at = {(r["subject"], scan_stem(r["path"])): i for i, r in enumerate(probe_rows)}
     gallery_at = {r["subject"]: j for j, r in enumerate(gallery_rows)}
     if len(gallery_at) != len(gallery_rows):
@@ -506,7 +540,8 @@ virtual environment). On Debian/Ubuntu, Open3D also needs the system library lib
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the rap3df-2019 folder")
-    ap.add_argument("--methods", default="icp", help="facerec3d methods, comma separated ('' for none)")
+    ap.add_argument("--methods", default="icp",
+                    help="facerec3d methods, comma separated ('' for none); NAME or NAME=settings.toml")
     ap.add_argument("--anchors", default=",".join(ANCHORS), help="anchors to run, comma separated")
     ap.add_argument("--jobs", type=int, default=2, help="processes")
     ap.add_argument("--fair-voxel", type=float, default=FAIR["probe_voxel_mm"],
@@ -516,6 +551,8 @@ def main(argv=None) -> int:
                     help="preprocessing cache folder shared by the methods (default: none, so preprocessing is timed)")
     ap.add_argument("--options", type=json.loads, default=None,
                     help='method settings as JSON, as a --method-config file holds them (e.g. \'{"icp": {...}}\')')
+    ap.add_argument("--train", type=Path, default=Path("bench-out/data/train-kinect-v2"),
+                    help="training set of the learnt methods (pca, lda); written there (synthetic kinect-v2) if missing")
     args = ap.parse_args(argv)
 
     if not (args.data / "manifest.csv").is_file() or not (args.data / "intrinsics.json").is_file():
@@ -531,7 +568,8 @@ def main(argv=None) -> int:
     gallery_rows = [r for r in manifest if r["role"] == "gallery"]
     probe_rows = [r for r in manifest if r["role"] == "probe"]
     anchors = [a for a in args.anchors.split(",") if a]
-    methods = [m for m in args.methods.split(",") if m]
+    specs = method_specs(args.methods, args.options)
+    methods = [label for label, _, _ in specs]
     unknown = set(anchors) - set(ANCHORS)
     if unknown:
         ap.error(f"unknown anchor(s) {sorted(unknown)}; choose from {list(ANCHORS)}")
@@ -545,11 +583,14 @@ def main(argv=None) -> int:
         np.savez_compressed(args.out / f"{a}_scores.npz", S=systems[a]["S"],  # scores only, no data
                             probes=[r["path"] for r in probe_rows], gallery=[r["path"] for r in gallery_rows])
         print("  " + timing_lines({a: systems[a]})[0], flush=True)
-    for m in methods:
+    for m, method, options in specs:
         print(f"facerec3d {m}: evaluate(...) ...", flush=True)
         try:
-            systems[m] = run_method(m, args.data, gallery_rows, probe_rows, args.out, args.jobs, args.cache,
-                                    args.options)
+            from facerec3d.matching.registry import make_matcher
+
+            train = training_set(args.train) if make_matcher(method, options).needs_training else None
+            systems[m] = run_method(method, args.data, gallery_rows, probe_rows, args.out, args.jobs, args.cache,
+                                    options, label=m, train=train)
             print("  " + timing_lines({m: systems[m]})[0], flush=True)
         except Exception as e:  # noqa: BLE001 - a failing method is reported, the benchmark goes on
             reason = " ".join(f"{type(e).__name__}: {e}".split())

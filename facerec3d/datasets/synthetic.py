@@ -496,7 +496,8 @@ class FaceScanner:
         rr, cc = np.mgrid[0 : cfg.rows, 0 : cfg.cols]
         dirs = np.stack([(cc - cx) / cfg.focal_px, -(rr - cy) / cfg.focal_px, -np.ones(rr.shape)], axis=-1)
         hit = np.isfinite(s) & (cosine > 0.0)  # back faces: rays through the eye and mouth openings
-        clean = np.where(hit[..., None], s[..., None] * dirs, np.nan)
+        with np.errstate(invalid="ignore"):  # inf × 0 on the rays that hit nothing: masked out here
+            clean = np.where(hit[..., None], s[..., None] * dirs, np.nan)
         occluded = hit & (tri >= len(self._tris))
 
         # scanner effects (s is the Z-depth: the ray direction has z = -1)
@@ -528,7 +529,8 @@ class FaceScanner:
         noisy_s = np.where(spike_px, noisy_s - offs, noisy_s)
         if cfg.depth_step_mm or cfg.depth_steps:
             noisy_s = quantise_depth(noisy_s, cfg.depth_step_mm, cfg.depth_steps)
-        xyz = np.where(valid[..., None], noisy_s[..., None] * dirs, np.nan)
+        with np.errstate(invalid="ignore"):  # as `clean`: invalid rays are masked out
+            xyz = np.where(valid[..., None], noisy_s[..., None] * dirs, np.nan)
 
         truth = {k: v - cam for k, v in m.fiducials(head).items()}
         label = spec.expression
