@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from facerec3d import FaceScan
-from facerec3d.datasets.frontal import frontal_face
+from facerec3d.datasets.frontal import CROP_MM, frontal_face
 
 
 def cap_image(rows: int = 12, cols: int = 16, invalid=((0, 0), (5, 7), (11, 15)), seed: int = 1) -> FaceScan:
@@ -28,10 +28,10 @@ def cap():
     return cap_image()
 
 
-def model_face(subject: int, expression: str = "neutral", noise_mm: float = 0.2) -> FaceScan:
+def model_face(subject: int, expression: str = "neutral", noise_mm: float = 0.2, crop_mm: float = CROP_MM) -> FaceScan:
     """A face as preprocessing leaves it, straight from the model (datasets.frontal), with depth noise and the
     model's true fiducials as landmarks; subject ids "s<n>"."""
-    face = frontal_face(subject, noise_mm=noise_mm, seed=len(expression), expression=expression)
+    face = frontal_face(subject, noise_mm=noise_mm, seed=len(expression), expression=expression, crop_mm=crop_mm)
     return face.replace(meta=face.meta.replace(subject=f"s{subject}"))
 
 

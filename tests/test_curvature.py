@@ -10,6 +10,7 @@ from facerec3d.geometry.curvature import depth_curvature
 from facerec3d.matching.depthmap import depth_image, fill_nearest
 from facerec3d.matching.registry import make_matcher
 from facerec3d.preprocess.batch import preprocess_files
+from facerec3d.preprocess.resample import ResampleConfig
 
 SMALL = ScannerConfig(rows=320, cols=400, focal_px=1000.0)
 C = np.arange(161) - 80.0
@@ -76,7 +77,8 @@ def test_face_landmarks_have_the_expected_shape(faces):
     """Nose tip: a cap (S near +1, H > 0); inner eye corners: concave (S < 0), in the face's frontal frame."""
     for face in faces:
         c = depth_curvature(fill_nearest(depth_image(face)), 1.0, 2.0)
-        cell = {name: (round(80 - y), round(x + 80)) for name, (x, y, _) in face.landmarks.items()}  # 1 mm grid
+        w = ResampleConfig().half_width_mm  # the 1 mm grid spans [−w, w]
+        cell = {name: (round(w - y), round(x + w)) for name, (x, y, _) in face.landmarks.items()}
         assert c.shape_index[cell["nose_tip"]] > 0.8 and c.mean[cell["nose_tip"]] > 0
         for eye in ("left_eye_inner", "right_eye_inner"):
             assert c.shape_index[cell[eye]] < -0.2

@@ -11,6 +11,7 @@ from click.testing import CliRunner
 from facerec3d.cli import main
 from facerec3d.datasets.synthetic import DatasetConfig, ScannerConfig, write_dataset
 from facerec3d.evaluation.metrics import FIGURES
+from facerec3d.preprocess import PreprocessConfig
 
 SMALL = ScannerConfig(rows=320, cols=400, focal_px=1000.0)
 SEMESTERS = {"Spring2003range": "Spring2003", "Fall2003range": "Fall2003", "Spring2004range": "Spring2004"}
@@ -81,7 +82,7 @@ def test_report_records_enough_to_rerun_and_the_rerun_gives_the_same_figures(exp
     root, _, m = exp3
     p = m["provenance"]
     assert p["facerec3d_version"] and p["date"] and p["machine"]["cores"] >= 1 and "git_commit" in p
-    assert m["preprocess"]["crop_radius_mm"] == 80.0 and m["options"]["variant"] == "point-to-point"
+    assert m["preprocess"]["crop_radius_mm"] == PreprocessConfig().crop_radius_mm and m["options"]["variant"] == "point-to-point"
     report = (root / "run" / "report.md").read_text()
     assert shlex.join(p["rerun"]) in report and "Preprocessing configuration" in report
     rerun = list(p["rerun"])

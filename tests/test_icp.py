@@ -7,16 +7,19 @@ import pytest
 from scipy.spatial import cKDTree
 
 from facerec3d import FaceScan, ScanMeta
-from facerec3d.datasets.frontal import CROP_MM, face_mesh, on_preprocessing_grid
+from facerec3d.datasets.frontal import face_mesh, on_preprocessing_grid
 from facerec3d.geometry.normals import estimate_normals
 from facerec3d.geometry.transforms import rigid_fit, rotation_between, rotation_from_euler
 from facerec3d.geometry.transforms import rigid_from_covariance as _fit_rigid
 from facerec3d.matching import GalleryIndex, ICPConfig, ICPMatcher, ProbeData, Template, icp
 
 
+CROP_MM = 80.0  # the ICP scenarios below are built on Mian et al.'s 80 mm crop (preprocessing's default is wider)
+
+
 def grid_scan(mesh, identity: int = 0) -> FaceScan:
     """The face as preprocessing leaves it: on the 1 mm x–y grid, cropped to 80 mm around the nose."""
-    scan = on_preprocessing_grid(*mesh)
+    scan = on_preprocessing_grid(*mesh, CROP_MM)
     return scan.replace(meta=ScanMeta(subject=f"s{identity}", scan_id=f"s{identity}-g"))
 
 

@@ -58,11 +58,13 @@ def test_output_is_a_frontal_face_on_a_uniform_grid(posed):
     cfg = PreprocessConfig()
     for _, face in posed[:4]:
         z, valid = depth_map(face, cfg.resample)
-        assert z.shape == (161, 161)
+        n = 2 * round(cfg.resample.half_width_mm / cfg.resample.resolution_mm) + 1  # cells over [−w, w]
+        assert z.shape == (n, n)
         assert np.linalg.norm(face.points, axis=1).max() <= cfg.crop_radius_mm + 1e-9
         assert valid.sum() > 9000  # at least 90 cm² of face surface at 1 mm per cell
         assert np.linalg.norm(face.landmarks["nose_tip"]) < 1e-6
-        assert z[80, 80] == pytest.approx(np.nanmax(z[70:91, 70:91]), abs=3.0)  # the nose tip protrudes
+        c = (n - 1) // 2  # the nose tip's cell
+        assert z[c, c] == pytest.approx(np.nanmax(z[c - 10:c + 11, c - 10:c + 11]), abs=3.0)  # the nose tip protrudes
 
 
 def test_spikes_are_removed_and_good_points_kept():

@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from facerec3d.facemodel import load_model
+from facerec3d.preprocess.resample import ResampleConfig
 
 
 @dataclass(frozen=True, eq=False)
@@ -48,9 +49,10 @@ class MobilityMap:
 
 
 @lru_cache(maxsize=1)
-def expression_mobility(half_width: float = 80.0, step: float = 1.0) -> MobilityMap:
-    """The model's mobility map over ±half_width mm at `step` mm: at each grid cell, the mobility of the
+def expression_mobility(half_width: float | None = None, step: float = 1.0) -> MobilityMap:
+    """The model's mobility map over ±half_width mm (default: the resampling grid's, §8.5.6) at `step` mm: at each grid cell, the mobility of the
     frontmost (largest z) of the 8 face vertices nearest in x–y; cells over 3 mm from any vertex: +inf."""
+    half_width = ResampleConfig().half_width_mm if half_width is None else half_width
     model = load_model()
     face = model.region == 0
     verts = (model.mean - model.mean[model.nose_tip]).astype(np.float64)[face]
