@@ -5,7 +5,7 @@ versus the cascade, on 1 and 2 processes; the 1 → 2 process speed-up; the proj
 
 What it does, exactly:
 * Faces are synthetic identities made directly in preprocessed form (`facerec3d.datasets.frontal`:
-  ICT-FaceKit identities rasterised on the 1 mm frontal grid, ~14k points) — no range scanning or
+  ICT-FaceKit identities rasterised on the 1 mm frontal grid, ~18k points with the 95 mm crop) — no range scanning or
   preprocessing, which would cost ~0.4 s per face. `--distinct` of them are enrolled (timed, 2 processes).
 * A gallery of N faces holds the distinct templates and, beyond them, repeats them in turn (entry i is
   distinct face i mod D): every entry is a full ICP template and costs a full match, but memory holds

@@ -5,7 +5,7 @@
 Faces are ICT-FaceKit morphable-model identities like preprocessed scans: the
 face (model region 0) with the nose tip at the origin, rasterised on the 1 mm
 x–y grid of preprocessing (§8.5.6) and cropped to 80 mm around the nose
-(~14k points). A probe is the same identity moved by a small random pose
+(~18k points with the 95 mm crop). A probe is the same identity moved by a small random pose
 (≤ 3°, ≤ 3 mm, as left by pose normalisation), rasterised on that grid, with
 0.3 mm Gaussian depth noise; the ground truth is the inverse motion.
 

@@ -1,7 +1,7 @@
 """The depth-map representation of a preprocessed face (chapter §8.7.1), shared by PCA, LDA and curvature.
 
 A preprocessed face lies on the resampling grid (§8.5.6: 1 mm cells over
-±80 mm, nose tip at the origin, looking along +z). Its depth map z(x, y) is
+±95 mm by default, nose tip at the origin, looking along +z). Its depth map z(x, y) is
 cut to a square window around the nose tip and sampled every `step_mm`, so
 every face becomes a vector of the same length with corresponding cells
 (§8.7.1). Cells with no surface (outside the cropped sphere, self-occluded
