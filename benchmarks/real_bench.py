@@ -1,7 +1,8 @@
 """Real-data benchmark: facerec3d against two Open3D anchors on real Kinect v2 depth frames (rap3df-2019).
 
     python benchmarks/real_bench.py [--data ../shared/data/rap3df-2019] [--methods icp,...] [--jobs 2]
-                                    [--out runs/real]
+                                    [--out runs/real] [--anchors o3d-raw,o3d-fair] [--cache DIR] [--options JSON]
+                                    [--preprocess-config FILE] [--train DIR]
 
 Data: the rap3df-2019 folder (80 people, 521 Kinect v2 depth frames, 149 x 119 16-bit PNGs in mm,
 `intrinsics.json`, `manifest.csv` with `path,subject,pose,role`; see its README.md). It comes from the
@@ -85,6 +86,7 @@ import sys  # noqa: E402
 import time  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 from PIL import Image  # noqa: E402
@@ -336,7 +338,7 @@ def training_set(root: Path) -> Path:
 
 def run_method(method: str, data: Path, gallery_rows: list, probe_rows: list, out: Path, jobs: int,
                cache: Path | None = None, options: dict | None = None, label: str | None = None,
-               train: Path | None = None) -> dict:
+               train: Path | None = None, config: Any = None) -> dict:
     """One facerec3d method through its Python API; the score matrix rebuilt from scores.txt.
 
     Rows of scores.txt are paired with the manifest's probes by (real_id, probe_label), label = the
@@ -344,13 +346,14 @@ def run_method(method: str, data: Path, gallery_rows: list, probe_rows: list, ou
     with no row failed to acquire, a gallery subject never claimed failed to enrol."""
     from facerec3d.evaluation.run import evaluate
     from facerec3d.evaluation.scorefile import read_score_rows
+    from facerec3d.preprocess import PreprocessConfig
     from facerec3d.io import scan_stem
 
     warm = numba_cache_warm()
     t0 = time.perf_counter()
     label = label or method
     metrics = evaluate(data / "manifest.csv", method=method, out=out / label, jobs=jobs, progress=False,
-                       cache=cache, options=options, train=train)
+                       cache=cache, options=options, train=train, config=config or PreprocessConfig())
     wall_s = time.perf_counter() - t0
     rows = read_score_rows(out / label / "scores.txt")
     probe_at = {(r["subject"], scan_stem(r["path"])): i for i, r in enumerate(probe_rows)}
@@ -551,6 +554,9 @@ def main(argv=None) -> int:
                     help="preprocessing cache folder shared by the methods (default: none, so preprocessing is timed)")
     ap.add_argument("--options", type=json.loads, default=None,
                     help='method settings as JSON, as a --method-config file holds them (e.g. \'{"icp": {...}}\')')
+    ap.add_argument("--preprocess-config", type=Path, default=None,
+                    help="preprocessing settings (TOML/JSON, any subset, as `facerec3d preprocess --config`); e.g. "
+                         "crop_radius_mm = 80 with [resample] half_width_mm = 80 to measure another crop")
     ap.add_argument("--train", type=Path, default=Path("bench-out/data/train-kinect-v2"),
                     help="training set of the learnt methods (pca, lda); written there (synthetic kinect-v2) if missing")
     args = ap.parse_args(argv)
@@ -569,6 +575,9 @@ def main(argv=None) -> int:
     probe_rows = [r for r in manifest if r["role"] == "probe"]
     anchors = [a for a in args.anchors.split(",") if a]
     specs = method_specs(args.methods, args.options)
+    from facerec3d.preprocess import PreprocessConfig
+
+    config = PreprocessConfig.load(args.preprocess_config) if args.preprocess_config else None
     methods = [label for label, _, _ in specs]
     unknown = set(anchors) - set(ANCHORS)
     if unknown:
@@ -590,7 +599,7 @@ def main(argv=None) -> int:
 
             train = training_set(args.train) if make_matcher(method, options).needs_training else None
             systems[m] = run_method(method, args.data, gallery_rows, probe_rows, args.out, args.jobs, args.cache,
-                                    options, label=m, train=train)
+                                    options, label=m, train=train, config=config)
             print("  " + timing_lines({m: systems[m]})[0], flush=True)
         except Exception as e:  # noqa: BLE001 - a failing method is reported, the benchmark goes on
             reason = " ".join(f"{type(e).__name__}: {e}".split())
