@@ -339,7 +339,8 @@ def training_set(root: Path) -> Path:
 def run_method(method: str, data: Path, gallery_rows: list, probe_rows: list, out: Path, jobs: int,
                cache: Path | None = None, options: dict | None = None, label: str | None = None,
                train: Path | None = None, config: Any = None) -> dict:
-    """One facerec3d method through its Python API; the score matrix rebuilt from scores.txt.
+    """One facerec3d method through its Python API (preprocessing `config`, default the defaults); the score
+    matrix rebuilt from scores.txt.
 
     Rows of scores.txt are paired with the manifest's probes by (real_id, probe_label), label = the
     scan id (file stem, not unique across subjects), columns by claimed_id = gallery subject. A probe
@@ -574,10 +575,11 @@ def main(argv=None) -> int:
     gallery_rows = [r for r in manifest if r["role"] == "gallery"]
     probe_rows = [r for r in manifest if r["role"] == "probe"]
     anchors = [a for a in args.anchors.split(",") if a]
-    specs = method_specs(args.methods, args.options)
+    from facerec3d.matching.registry import make_matcher
     from facerec3d.preprocess import PreprocessConfig
 
-    config = PreprocessConfig.load(args.preprocess_config) if args.preprocess_config else None
+    specs = method_specs(args.methods, args.options)
+    config = PreprocessConfig.load(args.preprocess_config) if args.preprocess_config else PreprocessConfig()
     methods = [label for label, _, _ in specs]
     unknown = set(anchors) - set(ANCHORS)
     if unknown:
@@ -595,8 +597,6 @@ def main(argv=None) -> int:
     for m, method, options in specs:
         print(f"facerec3d {m}: evaluate(...) ...", flush=True)
         try:
-            from facerec3d.matching.registry import make_matcher
-
             train = training_set(args.train) if make_matcher(method, options).needs_training else None
             systems[m] = run_method(method, args.data, gallery_rows, probe_rows, args.out, args.jobs, args.cache,
                                     options, label=m, train=train, config=config)

@@ -329,6 +329,7 @@ def test_cache_entries_are_written_atomically(data, tmp_path, monkeypatch):
     ('[denoise]\nmethod = "blur"\n', "denoise: unknown denoising method 'blur'"),
     ('[detect.model]\nexpression_modes = 1\n', "detect.model.expression_modes: must be true or false, not 1"),
     ('crop_radius_mm = nan\n', "crop_radius_mm: must be a finite number"),
+    ('crop_radius_mm = 120\n', "crop_radius_mm 120 is wider than the resampling grid (resample.half_width_mm 95)"),
     ('[detect]\nring_mm = [20]\n', "detect.ring_mm: must be a list of 2"),
     ('resample = 3\n', "resample: must be a table of ResampleConfig settings"),
     ('crop_radius_mm = \n', "not valid TOML"),

@@ -50,8 +50,9 @@ class MobilityMap:
 
 @lru_cache(maxsize=1)
 def expression_mobility(half_width: float | None = None, step: float = 1.0) -> MobilityMap:
-    """The model's mobility map over ±half_width mm (default: the resampling grid's, §8.5.6) at `step` mm: at each grid cell, the mobility of the
-    frontmost (largest z) of the 8 face vertices nearest in x–y; cells over 3 mm from any vertex: +inf."""
+    """The model's mobility map over ±half_width mm (default: the resampling grid's, §8.5.6) at `step` mm: at
+    each grid cell, the mobility of the frontmost (largest z) of the 8 face vertices nearest in x–y; cells over
+    3 mm from any vertex: +inf."""
     half_width = ResampleConfig().half_width_mm if half_width is None else half_width
     model = load_model()
     face = model.region == 0

@@ -29,7 +29,7 @@ class ResampleConfig:
     """Resampling grid (§8.5.6)."""
 
     resolution_mm: float = 1.0  # cell size
-    half_width_mm: float = 95.0  # the grid spans [−w, w] in x and y (PreprocessConfig.crop_radius_mm)
+    half_width_mm: float = 95.0  # the grid spans [−w, w] in x and y; also the default crop radius (PreprocessConfig)
 
     @property
     def size(self) -> int:
