@@ -565,16 +565,17 @@ def main(argv=None) -> int:
     if not (args.data / "manifest.csv").is_file() or not (args.data / "intrinsics.json").is_file():
         print(NO_DATA.format(data=args.data), file=sys.stderr)
         return 2
-    if o3d is None:
+    anchors = [a for a in args.anchors.split(",") if a]
+    if anchors and o3d is None:  # only the anchors run Open3D
         print(NO_OPEN3D.format(error=_O3D_ERROR), file=sys.stderr)
         return 2
-    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    if o3d is not None:
+        o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     FAIR["probe_voxel_mm"] = args.fair_voxel or None
     intr = json.loads((args.data / "intrinsics.json").read_text())
     manifest = read_manifest(args.data)
     gallery_rows = [r for r in manifest if r["role"] == "gallery"]
     probe_rows = [r for r in manifest if r["role"] == "probe"]
-    anchors = [a for a in args.anchors.split(",") if a]
     from facerec3d.matching.registry import make_matcher
     from facerec3d.preprocess import PreprocessConfig
 

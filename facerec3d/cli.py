@@ -390,12 +390,15 @@ def evaluate(data, method, method_config, train, model, out, protocol, config_fi
 @click.option("--subject", help="Subject of scan files whose names do not say it (default: the file stem).")
 @click.option("--gallery-only", is_flag=True, help="Of a dataset, enrol only its protocol's gallery scans.")
 @click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
+@click.option("--calibrate/--no-calibrate", default=True, show_default=True,
+              help="After enrolling, calibrate the gallery's verification threshold on its own scans (FMR 1 %; "
+                   "see 'gallery STORE calibrate').")
 @_engine_options
 @_server_options
 @_edge_option
 @friendly
-def enroll(data, gallery, method, method_config, train, model, config_file, subject, gallery_only, cache, jobs,
-           scheduler, server, api_key, preprocess_locally):
+def enroll(data, gallery, method, method_config, train, model, config_file, subject, gallery_only, cache, calibrate,
+           jobs, scheduler, server, api_key, preprocess_locally):
     """Enrol scans DATA (files, dataset folders or manifests) into the gallery store, one transaction each;
     scans that fail are recorded (failures to enrol) and the batch goes on; exit code 1 when every scan failed.
     With --server, upload them to a gallery service (--jobs at once)."""
@@ -430,6 +433,9 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
 
             report = enroll_scans(store, records, matcher, config=config, engine=engine, cache=cache, on_result=show)
             total = store.stats()["entries"]
+        if calibrate and report.enrolled:
+            with GalleryStore(gallery) as store:
+                _calibrate_threshold(store, None, 0.01, engine, cache, quiet_if_impossible=True)
     click.echo(f"{report.enrolled} enrolled, {len(report.skipped)} already enrolled, {len(report.failures)} failed "
                f"to enrol; {gallery}: {total} entries")
     if report.failures and not report.enrolled and not report.skipped:
@@ -478,8 +484,8 @@ def identify(probe, gallery, k, config_file, cache, cascade, shortlist, jobs, sc
 @click.argument("probe", type=click.Path(exists=True, dir_okay=False))
 @click.option("--gallery", "gallery", type=click.Path(dir_okay=False), help="Gallery store (or --server).")
 @click.option("--claim", required=True, help="The claimed subject ID.")
-@click.option("--threshold", type=float, help="Accept scores >= this (default for icp: -1.0 mm², the EER point "
-              "of the synthetic test60 protocol).")
+@click.option("--threshold", type=float, help="Accept scores >= this (default: the gallery's calibrated threshold, "
+              "see 'gallery STORE calibrate'; else for icp -1.0 mm², the EER point of synthetic laser scans).")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False),
               help="Preprocessing settings; must be the gallery's (default: the gallery's).")
 @click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
@@ -581,6 +587,50 @@ def gallery_remove(store, ident):
     click.echo(f"removed {n} entr{'y' if n == 1 else 'ies'}")
 
 
+def _calibrate_threshold(store, records, fmr, engine, cache, quiet_if_impossible=False) -> None:
+    """Calibrate and record the store's verification threshold; print what was recorded."""
+    from facerec3d.evaluation.calibrate import calibrate
+    from facerec3d.gallery.store import GalleryError
+
+    try:
+        r = calibrate(store, records, fmr=fmr, engine=engine, cache=cache)
+    except GalleryError as e:
+        if not quiet_if_impossible:
+            raise
+        click.echo(f"verification threshold not calibrated: {e}")
+        return
+    extra = f", TAR {r['tar']:.1%} on {r['genuine_pairs']} genuine pairs" if "tar" in r else ""
+    click.echo(f"verification threshold {r['value']:.4g} ({r['rule']}: FMR {r['fmr']:.2%} on {r['impostor_pairs']} "
+               f"impostor pairs{extra}; {r['data']}) recorded in {store.path}")
+
+
+@gallery.command("calibrate")
+@click.argument("data", nargs=-1, type=click.Path(exists=True))
+@click.option("--fmr", type=click.FloatRange(0.0, 1.0, min_open=True), default=0.01, show_default=True,
+              help="False-match rate the threshold keeps.")
+@click.option("--eer", is_flag=True, help="Threshold at the equal error rate instead (needs two scans of some "
+              "subjects).")
+@click.option("--subject", help="Subject of scan files whose names do not say it.")
+@click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
+@_engine_options
+@click.pass_obj
+@friendly
+def gallery_calibrate(store, data, fmr, eer, subject, cache, jobs, scheduler):
+    """Calibrate the verification threshold of STORE on labelled scans DATA of its own sensor (files, dataset
+    folders or manifests; default: the scans it was enrolled from) and record it: verify and the service use it
+    whenever no threshold is given."""
+    from facerec3d.gallery.engine import Engine
+    from facerec3d.gallery.service import scan_records
+    from facerec3d.gallery.store import GalleryStore
+    from facerec3d.preprocess.batch import DEFAULT_CACHE
+
+    if _remote_gallery() is not None:
+        raise click.UsageError("calibrate a gallery store file, not a service")
+    records = scan_records(data, subject) if data else None
+    with Engine.create(jobs, scheduler) as engine, GalleryStore(store) as s:
+        _calibrate_threshold(s, records, None if eer else fmr, engine, cache or DEFAULT_CACHE)
+
+
 @gallery.command("stats")
 @click.pass_obj
 @friendly
@@ -598,6 +648,9 @@ def gallery_stats(store):
                f"templates {st['template_bytes'] / 2**20:.1f} MiB, "
                f"file {st['file_bytes'] / 2**20:.1f} MiB; {st['failures_to_enrol']} failures to enrol; "
                f"method {st['method']} {st['options']}")
+    if (t := st.get("threshold")) is not None:
+        click.echo(f"verification threshold {t['value']:.4g} ({t['rule']}, {t['data']}, {t['entries']} entries, "
+                   f"{t['calibrated_at']})")
 
 
 @main.command()

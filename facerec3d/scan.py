@@ -16,6 +16,10 @@ from typing import Any
 import numpy as np
 
 
+#: `FaceScan.provenance` values: where a point of a face comes from.
+SEEN, FILLED, MIRRORED = 0, 1, 2
+
+
 @dataclass(frozen=True)
 class ScanMeta:
     """Who and what a scan is. Every field is optional."""
@@ -42,6 +46,10 @@ class FaceScan:
     colors:     (N, 3) uint8 RGB, or None.
     landmarks:  name -> (3,) float64 position in mm (same frame as points).
     meta:       identity and provenance.
+    mesh:       (M, 3) int64 point indices of the triangles of a mesh file (a scan without a grid), or None;
+                preprocessing rasterises them into a range image (`preprocess.resample.gridify`).
+    provenance: (N,) uint8 where each point comes from (SEEN, FILLED by hole filling, MIRRORED from the other
+                side of the face), or None (all seen); matchers may weigh points by it.
     """
 
     points: np.ndarray
@@ -51,6 +59,8 @@ class FaceScan:
     colors: np.ndarray | None = None
     landmarks: dict[str, np.ndarray] = field(default_factory=dict)
     meta: ScanMeta = field(default_factory=ScanMeta)
+    mesh: np.ndarray | None = None
+    provenance: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         pts = np.ascontiguousarray(self.points, dtype=np.float64).reshape(-1, 3)
@@ -74,6 +84,16 @@ class FaceScan:
             if len(col) != n:
                 raise ValueError(f"colors has {len(col)} rows for {n} points")
             object.__setattr__(self, "colors", col)
+        if self.provenance is not None:
+            prov = np.ascontiguousarray(self.provenance, dtype=np.uint8).reshape(-1)
+            if len(prov) != n:
+                raise ValueError(f"provenance has {len(prov)} rows for {n} points")
+            object.__setattr__(self, "provenance", prov)
+        if self.mesh is not None:
+            tri = np.ascontiguousarray(self.mesh, dtype=np.int64).reshape(-1, 3)
+            if len(tri) and (tri.min() < 0 or tri.max() >= n):
+                raise ValueError(f"mesh triangles index points outside 0..{n - 1}")
+            object.__setattr__(self, "mesh", tri)
         object.__setattr__(
             self, "landmarks", {k: np.asarray(v, dtype=np.float64).reshape(3) for k, v in self.landmarks.items()}
         )
@@ -93,11 +113,20 @@ class FaceScan:
     def subset(self, index: np.ndarray) -> "FaceScan":
         """The scan restricted to the points selected by a boolean mask or index array."""
         index = np.asarray(index)
+        mesh = None
+        if self.mesh is not None:  # the triangles whose three corners are kept, renumbered
+            new = np.full(self.n_points, -1, dtype=np.int64)
+            kept = np.arange(self.n_points)[index]
+            new[kept] = np.arange(len(kept))
+            tri = new[self.mesh]
+            mesh = tri[(tri >= 0).all(axis=1)]
         return self.replace(
             points=self.points[index],
             grid=None if self.grid is None else self.grid[index],
             normals=None if self.normals is None else self.normals[index],
             colors=None if self.colors is None else self.colors[index],
+            mesh=mesh,
+            provenance=None if self.provenance is None else self.provenance[index],
         )
 
     def transformed(self, rotation: np.ndarray, translation: np.ndarray) -> "FaceScan":

@@ -343,7 +343,7 @@ def test_unknown_missing_and_unwritable(tmp_path, cap):
     with pytest.raises(ScanFormatError, match="not a regular file"):
         load_scan(tmp_path / "dir.ply")
     with pytest.raises(ScanFormatError, match="cannot write"):
-        save_scan(cap, tmp_path / "x.obj")
+        save_scan(cap, tmp_path / "x.off")
     with pytest.raises(ValueError, match="needs a scan with a grid"):
         save_scan(FaceScan(cap.points), tmp_path / "x.abs")
     assert set(SUPPORTED_SUFFIXES) >= {".abs", ".abs.gz", ".bnt", ".ply", ".obj", ".off", ".stl", ".npz"}

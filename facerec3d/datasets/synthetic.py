@@ -775,3 +775,20 @@ def quick_scan(subject: int = 0, expression: str = "neutral", *, yaw: float = 0.
     cfg = replace(scanner, **changes) if changes else scanner
     spec = ScanSpec(subject, expression, 1.0, yaw, pitch, roll, seed, occluder)
     return FaceScanner(cfg, identity=identity).scan(spec)
+
+
+def export_surface(scan: FaceScan, spacing_mm: float, *, mesh: bool = True, rotation: np.ndarray | None = None,
+                   translation: np.ndarray | None = None) -> FaceScan:
+    """A range scan as a mesh or point cloud file would hold it: no grid, vertices about `spacing_mm` apart (every
+    k-th row and column of the range image, k from the scan's pitch), with the grid's triangles (`mesh`) or none,
+    moved into another frame x -> R x + t (a scanner's or world frame), landmarks moved along."""
+    step = max(1, int(round(spacing_mm / scan.resolution())))
+    keep = (scan.grid[:, 0] % step == 0) & (scan.grid[:, 1] % step == 0)
+    coarse = scan.subset(keep)
+    coarse = coarse.replace(grid=coarse.grid // step, grid_shape=(-(-scan.grid_shape[0] // step),
+                                                                   -(-scan.grid_shape[1] // step)))
+    tris = coarse.triangles() if mesh else None
+    out = coarse.replace(grid=None, grid_shape=None, normals=None, colors=None, mesh=tris)
+    R = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+    t = np.zeros(3) if translation is None else np.asarray(translation, dtype=np.float64)
+    return out.transformed(R, t)

@@ -27,9 +27,22 @@ from facerec3d.preprocess.batch import preprocess_file
 from facerec3d.preprocess.pipeline import PreprocessConfig
 from facerec3d.scan import FaceScan
 
-#: Default verification thresholds (score = similarity) by method: ICP's −MSE (mm²) at the equal error rate
-#: of the synthetic test60 protocol (README).
+#: Default verification thresholds (score = similarity) by method, used only where the gallery has no calibrated
+#: threshold (`facerec3d gallery G calibrate`, evaluation.calibrate): ICP's −MSE (mm²) at the equal error rate of
+#: the synthetic test60 protocol (0.7 mm laser-like scans; Kinect-class scans need about −6, so calibrate).
 DEFAULT_THRESHOLDS: dict[str, float] = {"icp": -1.0}
+
+
+def gallery_threshold(store: GalleryStore, method: str) -> float:
+    """The verification threshold a gallery uses when none is given: its calibrated one, else the method's default
+    (laser-scan data), else a GalleryError saying how to get one."""
+    record = store.threshold()
+    if record is not None:
+        return float(record["value"])
+    if method in DEFAULT_THRESHOLDS:
+        return DEFAULT_THRESHOLDS[method]
+    raise GalleryError(f"{store.path}: no calibrated verification threshold for method {method!r}: run "
+                       f"'facerec3d gallery {store.path} calibrate' or give a threshold")
 
 
 def scan_records(data: Iterable[str | Path], subject: str | None = None,
@@ -186,13 +199,11 @@ def identify_scan(store: GalleryStore, probe: str | Path, *, k: int = 5, cascade
 def verify_scan(store: GalleryStore, probe: str | Path, claim: str, *, threshold: float | None = None,
                 config: PreprocessConfig | None = None, cache: str | Path | None = None) -> tuple[bool, float, float]:
     """(accepted, score, threshold): the probe's best score against the claimed subject's templates, accepted
-    when it reaches the threshold (default: DEFAULT_THRESHOLDS of the gallery's method). Methods whose scores
+    when it reaches the threshold (default: the gallery's calibrated one, `gallery_threshold`). Methods whose scores
     are normalised over the gallery (`matching.base.GalleryNormalised`: `cohort_scores`) score the probe against the whole gallery."""
     matcher = store.matcher()
     if threshold is None:
-        if matcher.name not in DEFAULT_THRESHOLDS:
-            raise GalleryError(f"no default threshold for method {matcher.name!r}: give --threshold")
-        threshold = DEFAULT_THRESHOLDS[matcher.name]
+        threshold = gallery_threshold(store, matcher.name)
     claimed = [e.id for e in store.entries(subject=claim)]
     if not claimed:
         raise GalleryError(f"{store.path}: subject {claim!r} is not enrolled")

@@ -8,7 +8,8 @@ the failures to enrol (ISO/IEC 19795-1 FTE).
 
 Schema (stdlib sqlite3, WAL journal, foreign keys on):
   meta(key, value)                       "format", "preprocess" (PreprocessConfig.fingerprint()),
-                                         "method", "options" (JSON), "state" (JSON attrs of a learnt matcher)
+                                         "method", "options" (JSON), "state" (JSON attrs of a learnt matcher),
+                                         "threshold" (JSON: the calibrated verification threshold, if any)
   entries(id, subject, scan_id, source UNIQUE, content UNIQUE, method, attrs JSON, nbytes, enrolled_at, checksum)
   arrays(entry → entries.id ON DELETE CASCADE, name, dtype, shape JSON, data BLOB, checksum)
   model_arrays(name, dtype, shape JSON, data BLOB, checksum)   what a learnt matcher's fit() kept
@@ -237,6 +238,29 @@ class GalleryStore:
             raise GalleryError(f"{self.path}: empty gallery (nothing enrolled yet)")
         return value
 
+    @_sqlite_errors
+    def set_threshold(self, record: dict) -> None:
+        """Record the gallery's calibrated verification threshold (`evaluation.calibrate`): a JSON object with at
+        least a finite "value", and how it was chosen."""
+        if not isinstance(record.get("value"), float) or not math.isfinite(record["value"]):
+            raise ValueError(f"a threshold record needs a finite float 'value', not {record.get('value')!r}")
+        with self._transaction():
+            self._db.execute("INSERT OR REPLACE INTO meta VALUES ('threshold', ?)", (json.dumps(record, sort_keys=True),))
+
+    @_sqlite_errors
+    def threshold(self) -> dict | None:
+        """The calibrated verification threshold's record (`set_threshold`), or None when none was calibrated."""
+        value = self._meta("threshold")
+        if value is None:
+            return None
+        try:
+            record = json.loads(value)
+            if not math.isfinite(float(record["value"])):
+                raise ValueError("not finite")
+        except (ValueError, TypeError, KeyError, RecursionError) as e:
+            raise GalleryError(f"{self.path}: damaged threshold record ({e})") from None
+        return record
+
     # ------------------------------------------------------------------ entries
     @_sqlite_errors
     def add(self, template: Template, source: str, content: str | None = None) -> int:
@@ -328,7 +352,8 @@ class GalleryStore:
             "SELECT COUNT(*), COUNT(DISTINCT subject), COALESCE(SUM(nbytes), 0) FROM entries").fetchone()
         return {"entries": n, "subjects": subjects, "template_bytes": nbytes,
                 "file_bytes": self.path.stat().st_size, "failures_to_enrol": len(self.failures()),
-                "method": self._meta("method"), "options": json.loads(self._meta("options") or "null")}
+                "method": self._meta("method"), "options": json.loads(self._meta("options") or "null"),
+                "threshold": self.threshold()}
 
 
 def _differences(a, b, prefix: str = "") -> Iterator[str]:

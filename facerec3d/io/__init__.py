@@ -5,7 +5,7 @@
 | .abs, .abs.gz | FRGC v2 range image (`abs`) | yes | yes |
 | .bnt (+ .lm3) | Bosphorus range image and landmarks (`bnt`) | yes | yes |
 | .ply | PLY mesh or point cloud, ASCII or binary, plyfile (`mesh`) | yes | yes |
-| .obj, .off, .stl | meshes and point clouds, trimesh (`mesh`) | yes | no |
+| .obj, .off, .stl | meshes and point clouds, trimesh (`mesh`) | yes | .obj |
 | .xyz, .csv, .txt | text point clouds (`text`) | yes | no |
 | .npy, .npz | NumPy range images, depth maps, point sets (`arrays`) | yes | .npz |
 | .png, .tif, .tiff (+ intrinsics.json) | 16-bit depth frames of depth cameras (`depth`) | yes | no (`write_depth_image`) |
@@ -28,7 +28,7 @@ from facerec3d.io.arrays import read_numpy, write_npz
 from facerec3d.io.depth import Intrinsics, find_intrinsics, read_depth_image, write_depth_image
 from facerec3d.io.bnt import load_landmarks_lm3, read_bnt, write_bnt, write_lm3
 from facerec3d.io.common import scan_stem, scan_suffix
-from facerec3d.io.mesh import read_mesh, read_ply, write_ply
+from facerec3d.io.mesh import read_mesh, read_ply, write_obj, write_ply
 from facerec3d.io.text import read_text_points
 from facerec3d.scan import FaceScan
 
@@ -40,7 +40,7 @@ READERS = {
     ".tiff": read_depth_image,
 }
 DEPTH_SUFFIXES = (".png", ".tif", ".tiff")
-WRITERS = {".abs": write_abs, ".abs.gz": write_abs, ".bnt": write_bnt, ".ply": write_ply, ".npz": write_npz}
+WRITERS = {".abs": write_abs, ".abs.gz": write_abs, ".bnt": write_bnt, ".ply": write_ply, ".obj": write_obj, ".npz": write_npz}
 SUPPORTED_SUFFIXES = tuple(READERS)
 
 
@@ -93,7 +93,7 @@ def _is_depth_npy(path: str | Path, intrinsics) -> bool:
 
 
 def save_scan(scan: FaceScan, path: str | Path) -> None:
-    """Write a scan in the format its file name says (.abs, .abs.gz, .bnt, .ply binary, .npz)."""
+    """Write a scan in the format its file name says (.abs, .abs.gz, .bnt, .ply binary, .obj, .npz)."""
     writer = WRITERS.get(scan_suffix(path))
     if writer is None:
         raise ScanFormatError(path, f"cannot write this format (writable: {', '.join(WRITERS)})")

@@ -7,8 +7,8 @@
 - (N, 3) points in mm (rows with NaN dropped).
 `.npz` holds `xyz` (H, W, 3) with optional `valid` (H, W) bool (else NaN marks
 invalid pixels), or `points` (N, 3), and landmarks as (3,) arrays named
-`landmark_<name>`, and the scan's `meta.extra` (quality, frontal transform) as JSON text in
-`meta_json`. Either suffix reads either kind of file.
+`landmark_<name>`, the scan's `meta.extra` (quality, frontal transform) as JSON text in
+`meta_json`, and a grid scan's point provenance (seen, filled, mirrored) as an (H, W) uint8 image `provenance`. Either suffix reads either kind of file.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from facerec3d.scan import FaceScan
 
 LANDMARK_PREFIX = "landmark_"
 META_KEY = "meta_json"  # the scan's meta.extra (quality, frontal transform) as JSON text
+PROVENANCE_KEY = "provenance"  # (H, W) uint8 image of a grid scan's FaceScan.provenance
 MAX_MEMBER_BYTES = MAX_POINTS * 3 * 8 + 4096  # largest .npz member accepted (uncompressed)
 
 
@@ -64,6 +65,11 @@ def read_numpy(path: str | Path) -> FaceScan:
             scan = _from_array(path, z[key], z["valid"] if key == "xyz" and "valid" in z.files else None)
             landmarks = {k[len(LANDMARK_PREFIX) :]: z[k] for k in z.files if k.startswith(LANDMARK_PREFIX)}
             extra = _meta_extra(path, z[META_KEY]) if META_KEY in z.files else {}
+            if PROVENANCE_KEY in z.files and scan.grid is not None:
+                image = z[PROVENANCE_KEY]
+                if image.shape != scan.grid_shape or image.dtype != np.uint8:
+                    raise ScanFormatError(path, f"'{PROVENANCE_KEY}' must be a {scan.grid_shape} uint8 image")
+                scan = scan.replace(provenance=image[scan.grid[:, 0], scan.grid[:, 1]])
     for name, v in landmarks.items():
         if v.shape != (3,) or v.dtype.kind not in "fiu" or not np.isfinite(v).all():
             raise ScanFormatError(path, f"landmark {name[:80]!r} is not a finite 3-vector")
@@ -101,6 +107,10 @@ def write_npz(scan: FaceScan, path: str | Path) -> None:
             pass
     if scan.grid is not None:
         arrays["xyz"], arrays["valid"] = scan.to_range_image()
+        if scan.provenance is not None:
+            image = np.zeros(scan.grid_shape, np.uint8)
+            image[scan.grid[:, 0], scan.grid[:, 1]] = scan.provenance
+            arrays[PROVENANCE_KEY] = image
     else:
         arrays["points"] = scan.points
     with open(path, "wb") as f:  # a file object, so NumPy does not append '.npz' to the name

@@ -89,12 +89,13 @@ def point_scan(
     grid: np.ndarray | None = None,
     grid_shape: tuple[int, int] | None = None,
     normals: np.ndarray | None = None,
+    mesh: np.ndarray | None = None,
     **fields: Any,
 ) -> FaceScan:
     """A scan from (N, 3) points in mm (and optional per-point grid positions and normals), checked.
 
-    Refuses empty or non-finite points and grids with positions outside `grid_shape` or
-    repeated; drops normals that are not all finite.
+    Refuses empty or non-finite points, grids with positions outside `grid_shape` or
+    repeated, and mesh triangles naming a missing vertex; drops normals that are not all finite.
     """
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or not len(points):
@@ -113,7 +114,14 @@ def point_scan(
             raise ScanFormatError(path, "two points share a grid position")
     if normals is not None and not np.isfinite(normals).all():
         normals = None
-    return FaceScan(points=points, grid=grid, grid_shape=grid_shape, normals=normals, **fields)
+    if mesh is not None:
+        mesh = np.asarray(mesh, dtype=np.int64).reshape(-1, 3)
+        if len(mesh) > 4 * MAX_POINTS:
+            raise ScanFormatError(path, f"absurd size: {len(mesh)} triangles (more than {4 * MAX_POINTS})")
+        if len(mesh) and (mesh.min() < 0 or mesh.max() >= len(points)):
+            raise ScanFormatError(path, f"a triangle names a vertex outside 0..{len(points) - 1}")
+        mesh = mesh if len(mesh) else None
+    return FaceScan(points=points, grid=grid, grid_shape=grid_shape, normals=normals, mesh=mesh, **fields)
 
 
 def range_image(scan: FaceScan, path: str | Path) -> tuple[np.ndarray, np.ndarray]:

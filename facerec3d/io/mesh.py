@@ -1,7 +1,8 @@
 """Meshes and point clouds: PLY through plyfile (read and write), OBJ / OFF / STL through trimesh (read).
 
-Vertices become the scan's points (mm); faces are not kept (a grid scan is
-re-triangulated from its grid). A PLY written here keeps the range-image grid:
+Vertices become the scan's points (mm). A mesh's triangles are kept (`FaceScan.mesh`, polygons fanned into
+triangles) when it has no range-image grid, so preprocessing rasterises the surface, not only its vertices; a grid
+scan is re-triangulated from its grid. A PLY written here keeps the range-image grid:
 integer vertex properties `row` and `col` and a header comment
 `facerec3d grid_shape R C`.
 """
@@ -66,16 +67,29 @@ def read_ply(path: str | Path) -> FaceScan:
         if shape and {"row", "col"} <= set(vertex.dtype.names):
             grid_shape = (int(shape[0][0]), int(shape[0][1]))
             grid = np.stack([vertex["row"], vertex["col"]], axis=1).astype(np.int64)
+        mesh = None if grid is not None or "face" not in ply else _ply_triangles(ply["face"].data)
     if points is None:
         raise ScanFormatError(path, "PLY vertices have no x, y, z")
-    return point_scan(path, points, grid=grid, grid_shape=grid_shape, normals=normals, colors=colors)
+    return point_scan(path, points, grid=grid, grid_shape=grid_shape, normals=normals, colors=colors, mesh=mesh)
+
+
+def _ply_triangles(face: np.ndarray) -> np.ndarray | None:
+    """(M, 3) triangles of a PLY face element (polygons fanned from their first corner); None without indices."""
+    name = next((n for n in ("vertex_indices", "vertex_index") if n in (face.dtype.names or ())), None)
+    if name is None or not len(face):
+        return None
+    lists = face[name]
+    if lists.dtype != object:  # triangle lists read as an (M, 3) array
+        return np.asarray(lists, dtype=np.int64).reshape(-1, 3)
+    tris = [np.stack([np.full(len(p) - 2, p[0]), p[1:-1], p[2:]], axis=1) for p in lists if len(p) >= 3]
+    return np.concatenate(tris).astype(np.int64) if tris else None
 
 
 def write_ply(scan: FaceScan, path: str | Path, binary: bool = True) -> None:
     """Write a scan as PLY (little-endian binary or ASCII).
 
     Vertices: x, y, z (float64 mm), + nx, ny, nz, + red, green, blue, + grid row, col (int32) and the
-    comment `facerec3d grid_shape R C`; faces: the grid triangles of a grid scan. plyfile writes the
+    comment `facerec3d grid_shape R C`; faces: the grid triangles of a grid scan, or a mesh's own triangles. plyfile writes the
     header; the body is written here in one piece (plyfile writes list elements record by record).
     """
     from plyfile import PlyData, PlyElement
@@ -94,7 +108,10 @@ def write_ply(scan: FaceScan, path: str | Path, binary: bool = True) -> None:
     for name, col in columns.items():
         vertex[name] = col
     elements = [PlyElement.describe(vertex, "vertex")]
-    tris = scan.triangles() if scan.grid is not None and scan.n_points else np.empty((0, 3), dtype=np.int64)
+    if scan.grid is not None and scan.n_points:
+        tris = scan.triangles()
+    else:
+        tris = scan.mesh if scan.mesh is not None else np.empty((0, 3), dtype=np.int64)
     face = np.empty(len(tris), dtype=[("n", "u1"), ("vertex_indices", "<i4", (3,))])  # list uchar int
     face["n"], face["vertex_indices"] = 3, tris
     if len(tris):  # (an unfilled array of the face element's type, for its header lines)
@@ -110,6 +127,20 @@ def write_ply(scan: FaceScan, path: str | Path, binary: bool = True) -> None:
             np.savetxt(f, np.column_stack([face["n"], face["vertex_indices"]]), fmt="%d")
 
 
+def write_obj(scan: FaceScan, path: str | Path) -> None:
+    """Write a scan as a Wavefront OBJ mesh (trimesh): its vertices (mm) and triangles (a mesh's own, or the grid
+    triangles of a grid scan; none for a point cloud). The grid itself is not kept: OBJ has no place for it."""
+    import trimesh
+
+    if scan.grid is not None and scan.n_points:
+        tris = scan.triangles()
+    else:
+        tris = scan.mesh if scan.mesh is not None else np.empty((0, 3), dtype=np.int64)
+    text = trimesh.exchange.obj.export_obj(trimesh.Trimesh(scan.points, tris, process=False), include_normals=False,
+                                          include_color=False, include_texture=False)
+    Path(path).write_text(text, encoding="utf-8")
+
+
 def read_mesh(path: str | Path) -> FaceScan:
     """An OBJ, OFF or STL mesh or point cloud: its vertices, with vertex colours when the file has them.
 
@@ -122,7 +153,7 @@ def read_mesh(path: str | Path) -> FaceScan:
 
     suffix = Path(path).suffix.lower().lstrip(".")
     data = read_bytes(path)
-    normals = colors = None
+    normals = colors = mesh = None
     with library_errors(path, f"{suffix.upper()} file"):
         geometry = trimesh.load(io.BytesIO(data), file_type=suffix, process=False)
         if isinstance(geometry, trimesh.Scene):
@@ -133,10 +164,14 @@ def read_mesh(path: str | Path) -> FaceScan:
         if isinstance(geometry, trimesh.Trimesh):
             if geometry.visual.kind == "vertex":  # otherwise trimesh reports a default colour
                 colors = np.asarray(geometry.visual.vertex_colors)
+            if len(geometry.faces):
+                mesh = np.asarray(geometry.faces, dtype=np.int64)
         elif isinstance(geometry, trimesh.PointCloud):
             colors = np.asarray(geometry.colors)
     if colors is not None:
         colors = colors[:, :3] if colors.ndim == 2 and len(colors) == len(points) and len(points) else None
-    if suffix == "stl":
-        points, normals, colors = np.unique(points, axis=0), None, None
-    return point_scan(path, points, normals=normals, colors=colors)
+    if suffix == "stl":  # one vertex per corner: merged, the triangles renumbered
+        points, inverse = np.unique(points, axis=0, return_inverse=True)
+        mesh = None if mesh is None else inverse.reshape(-1)[mesh]
+        normals = colors = None
+    return point_scan(path, points, normals=normals, colors=colors, mesh=mesh)

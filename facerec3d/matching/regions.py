@@ -42,7 +42,7 @@ from facerec3d.matching.base import GalleryNormalised, Matcher, Template
 from facerec3d.matching.expression import expression_mobility
 from facerec3d.matching.icp import GalleryIndex, ICPConfig, ICPMatcher, ProbeData
 from facerec3d.matching.normalisation import check_fusion, fuse
-from facerec3d.scan import FaceScan
+from facerec3d.scan import MIRRORED, FaceScan
 
 NAMED_REGIONS = ("nose", "eyes-forehead", "rigid")
 
@@ -145,7 +145,9 @@ class RegionICPMatcher(GalleryNormalised, Matcher[RegionProbe]):
             normals = estimate_normals(scan.points, cfg.icp.normal_neighbours, grid=scan.grid,
                                        grid_shape=scan.grid_shape)
         regions = []
+        seen = True if scan.provenance is None or cfg.icp.probe_mirrored else scan.provenance != MIRRORED
         for mask in region_masks(scan, cfg).values():
+            mask = mask & seen  # the probe's regions as its camera saw them (ICPConfig.probe_mirrored)
             if mask.sum() < cfg.min_points:
                 regions.append(None)
                 continue

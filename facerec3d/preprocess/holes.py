@@ -16,7 +16,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.interpolate import griddata
 
-from facerec3d.scan import FaceScan
+from facerec3d.scan import FILLED, FaceScan
 
 
 @dataclass(frozen=True)
@@ -42,7 +42,8 @@ def hole_mask(scan: FaceScan, config: HoleConfig = HoleConfig()) -> np.ndarray:
 
 
 def fill_holes(scan: FaceScan, config: HoleConfig = HoleConfig()) -> FaceScan:
-    """The scan with its holes filled; filled points get no normal or colour (normals and colours are dropped)."""
+    """The scan with its holes filled; filled points get no normal or colour (normals and colours are dropped) and
+    the provenance FILLED."""
     holes = hole_mask(scan, config)
     if not holes.any():
         return scan
@@ -59,4 +60,6 @@ def fill_holes(scan: FaceScan, config: HoleConfig = HoleConfig()) -> FaceScan:
         grid=np.concatenate([scan.grid, wanted]),
         normals=None,
         colors=None,
+        provenance=np.concatenate([np.zeros(scan.n_points, np.uint8) if scan.provenance is None else scan.provenance,
+                                   np.full(len(values), FILLED, np.uint8)]),
     )

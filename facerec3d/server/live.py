@@ -37,7 +37,7 @@ import numpy as np
 from facerec3d.errors import FaceRec3DError
 from facerec3d.gallery.cascade import CascadeConfig, check_cascadable
 from facerec3d.gallery.engine import Engine, Probe, ShardedGallery
-from facerec3d.gallery.service import DEFAULT_THRESHOLDS
+from facerec3d.gallery.service import gallery_threshold
 from facerec3d.gallery.store import AlreadyEnrolled, Entry, GalleryError, GalleryStore
 from facerec3d.matching.base import rank
 from facerec3d.matching.registry import make_matcher
@@ -139,6 +139,7 @@ class LiveGallery:
                 store.check_matcher(make_matcher(method, options))
         self.config = store.preprocess_config()
         self.matcher = store.matcher()
+        self._default_threshold: float | None = None  # read once (the store's calibration, or the method's)
         entries = store.entries()
         gallery = self.engine.load(self.matcher, store.templates(entries))
         self.cascadable = True
@@ -209,12 +210,12 @@ class LiveGallery:
             return hits, snap.version, len(snap.entries)
 
     def threshold(self, threshold: float | None) -> float:
-        """The verification threshold: given, or the method's default."""
+        """The verification threshold: given, or the gallery's calibrated one, or the method's default."""
         if threshold is not None:
             return float(threshold)
-        if self.matcher.name not in DEFAULT_THRESHOLDS:
-            raise GalleryError(f"no default threshold for method {self.matcher.name!r}: give a threshold")
-        return DEFAULT_THRESHOLDS[self.matcher.name]
+        if self._default_threshold is None:
+            self._default_threshold = self._writer.submit(gallery_threshold, self._store, self.matcher.name).result()
+        return self._default_threshold
 
     def verify(self, probe: Probe, claim: str) -> tuple[float, int]:
         """(the probe's best score against the claimed subject's entries, the gallery version). Methods that

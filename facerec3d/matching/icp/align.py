@@ -35,7 +35,7 @@ from facerec3d.geometry.transforms import rigid_from_covariance
 from facerec3d.matching.base import Matcher, Template
 from facerec3d.matching.icp.config import ICPConfig
 from facerec3d.matching.icp.index import GalleryIndex, closest_point, nearest_within
-from facerec3d.scan import FaceScan
+from facerec3d.scan import MIRRORED, FaceScan
 
 PROBE_METHOD = "icp-probe"  # the method name of a prepared probe saved as a template (`ProbeData.save`)
 
@@ -162,7 +162,9 @@ class ICPMatcher(Matcher[ProbeData]):
         return GalleryIndex.from_scan(scan, self.config).to_template(scan.meta.subject, scan.meta.scan_id)
 
     def prepare(self, scan: FaceScan) -> ProbeData:
-        """The probe's random subset with normals."""
+        """The probe's random subset with normals (of what was seen, unless `probe_mirrored`)."""
+        if not self.config.probe_mirrored and scan.provenance is not None:
+            scan = scan.subset(scan.provenance != MIRRORED)
         return ProbeData.build(scan.points, scan.normals, scan.colors, self.config, grid=scan.grid,
                                grid_shape=scan.grid_shape)
 

@@ -37,6 +37,9 @@ class ICPConfig:
     #                                 every fine probe point of min(d, c·res)², d its distance to the closest gallery
     #                                 point at the final transform (a truncated MSE: a probe point without a partner
     #                                 costs (c·res)², so a partial overlap no longer scores like a good fit)
+    probe_mirrored: bool = False  # points of the probe completed from its mirror image (`FaceScan.provenance`,
+    #                               preprocess.symmetry) take part; False: the probe aligns only what its camera saw
+    #                               (and hole filling interpolated) onto the gallery face, mirrored side included
     seed: int = 0  # random probe subsets
 
     def __post_init__(self) -> None:

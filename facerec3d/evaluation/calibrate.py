@@ -1,0 +1,100 @@
+"""A gallery's verification threshold, calibrated on its own sensor's data (§8.4: the operating point of a
+verification system is a threshold on its score distribution).
+
+A fixed default cannot suit every sensor: ICP's −MSE of a genuine pair is ~0.3 mm² on 0.7 mm laser scans and
+1–3 mm² on Kinect frames in 4–8 mm depth steps, so the −1.0 mm² that sits at the equal error rate of synthetic
+laser scans rejects most genuine Kinect claims (their EER threshold on rap3df-2019 is about −6 mm²). `calibrate`
+scores labelled scans of the gallery's own sensor against the gallery, the scan itself left out, and records in
+the store the threshold at a chosen false-match rate (FMR, the operating point access control sets), or at the
+equal error rate; `verify` and the service then use it whenever no threshold is given.
+
+With one scan per subject, as galleries usually are, only impostor pairs exist: the threshold at an FMR needs
+nothing else (the score above which `fmr` of the impostor comparisons lie); the equal error rate needs genuine
+pairs too, i.e. a second scan of some subjects (`facerec3d gallery G calibrate MORE_SCANS`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from facerec3d.datasets.catalog import ScanRecord
+from facerec3d.gallery.engine import Engine
+from facerec3d.gallery.store import GalleryError, GalleryStore
+from facerec3d.evaluation.metrics import _eer, _operating_point, roc
+
+DEFAULT_FMR = 0.01  # the false-match rate the recorded threshold keeps (1 %: one impostor in a hundred accepted)
+MAX_SCANS = 100  # calibration scans scored against the gallery at the most (an even selection of them)
+
+
+def gallery_records(store: GalleryStore) -> list[ScanRecord]:
+    """The scans the gallery was enrolled from that are still on disk (the gallery calibrates on itself)."""
+    return [ScanRecord(Path(e.source), str(e.subject), str(e.scan_id)) for e in store.entries()
+            if Path(e.source).is_file()]
+
+
+def calibration_scores(store: GalleryStore, records: Sequence[ScanRecord], *, engine: Engine,
+                       cache: str | Path | None = None, max_scans: int = MAX_SCANS) -> tuple[np.ndarray, np.ndarray, int]:
+    """(genuine scores, impostor scores, scans that failed to acquire) of up to `max_scans` labelled scans against
+    every entry of the gallery, leaving out each scan's own entry (same source file)."""
+    if len(records) > max_scans:
+        records = [records[i] for i in np.linspace(0, len(records) - 1, max_scans).round().astype(int)]
+    matcher, entries = store.matcher(), store.entries()
+    if not entries:
+        raise GalleryError(f"{store.path}: empty gallery (nothing enrolled yet)")
+    outcomes = list(engine.preprocess([r.path for r in records], store.preprocess_config(), cache=cache))
+    kept = [(r, o.face) for r, o in zip(records, outcomes) if o.face is not None]
+    genuine: list[float] = []
+    impostor: list[float] = []
+    if kept:
+        gallery = engine.load(matcher, store.templates(entries))
+        try:
+            results = gallery.scores(engine.prepare(matcher, [f for _, f in kept]))
+        finally:
+            gallery.release()
+        subjects = np.array([str(e.subject) for e in entries])
+        sources = np.array([str(Path(e.source).resolve()) for e in entries])
+        for (record, _), result in zip(kept, results):
+            other = sources != str(Path(record.path).resolve())
+            same = subjects == str(record.subject)
+            scores = np.asarray(result.scores, dtype=np.float64)
+            genuine += scores[other & same].tolist()
+            impostor += scores[other & ~same].tolist()
+    return np.array(genuine), np.array(impostor), len(records) - len(kept)
+
+
+def calibrate(store: GalleryStore, records: Sequence[ScanRecord] | None = None, *, fmr: float | None = DEFAULT_FMR,
+              engine: Engine, cache: str | Path | None = None, max_scans: int = MAX_SCANS) -> dict:
+    """Calibrate the gallery's verification threshold on labelled scans (default: the gallery's own) and record
+    it in the store: the threshold at false-match rate `fmr`, or at the equal error rate when `fmr` is None.
+    Returns the record: value, rule, pair counts, the EER and the TAR at the threshold where genuine pairs exist."""
+    own = records is None
+    records = gallery_records(store) if own else list(records)
+    genuine, impostor, failed = calibration_scores(store, records, engine=engine, cache=cache, max_scans=max_scans)
+    if impostor.size == 0:
+        raise GalleryError(f"{store.path}: no impostor pair to calibrate on: the gallery and the calibration scans "
+                           "need at least two subjects")
+    if fmr is None and genuine.size == 0:
+        raise GalleryError(f"{store.path}: the equal error rate needs genuine pairs (a second scan of some enrolled "
+                           "subjects); give them, or calibrate at a false-match rate")
+    if fmr is not None and fmr * impostor.size < 1:
+        raise GalleryError(f"{store.path}: {impostor.size} impostor pairs cannot resolve a false-match rate of "
+                           f"{fmr:g}: calibrate on more scans or at a higher rate")
+    fmrs, tars, thresholds = roc(genuine, impostor)
+    at = _eer(fmrs, tars)[1] if fmr is None else _operating_point(fmrs, tars, fmr)
+    value = float(thresholds[at])
+    if not np.isfinite(value):  # every impostor score is -inf (no match at all): accept any finite score
+        value = float(np.min(np.r_[genuine, impostor][np.isfinite(np.r_[genuine, impostor])], initial=0.0))
+    record = {"value": value, "rule": "eer" if fmr is None else f"fmr={fmr:g}",
+              "fmr": float(np.mean(impostor >= value)), "impostor_pairs": int(impostor.size),
+              "genuine_pairs": int(genuine.size), "scans": min(len(records), max_scans), "failed_scans": failed,
+              "data": "the gallery's own scans" if own else "calibration scans", "entries": len(store.entries()),
+              "calibrated_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    if genuine.size:
+        record["tar"] = float(np.mean(genuine >= value))
+        record["eer"] = float(_eer(fmrs, tars)[0])
+    store.set_threshold(record)
+    return record

@@ -1,0 +1,146 @@
+"""The view of a mesh or point cloud in a frame of its own (§8.5.1, before detection): which way it was seen from.
+
+A range image is seen along its camera's axis, but a mesh exported by a stereo scanner or in a world frame may
+look along any axis, with any roll. Before it is rasterised (`resample.gridify`), such a scan is turned so that
+it is seen along +z, head up, in two steps, each measured on the surface itself:
+
+1. `view_axis`: the axis the surface was seen along, the area-weighted mean of its unit normals (a single-view
+   scan shows only surface that faces its viewer). Which end of it the viewer was at, the normals do not tell
+   (a mesh's winding may be either way, a point cloud has none): both are tried in step 2, and the one where
+   the face fits better wins. A view within `OrientConfig.max_tilt_deg` of +z is taken as the camera's own
+   and the frame is kept; any other is turned so it is seen along +z.
+2. `upright_fit`: the rigid mean face of the morphable model is fitted around the strongest nose candidates from
+   `rolls` starting turns about the view axis (the detector's coarse fit); the best fit's vertical axis turns
+   the scan head up, as face detection's upright-head prior expects (Mian et al. 2007).
+
+The rotation applied is recorded: `Preprocessor` composes it into the face's `to_frontal`, so landmarks map back
+into the file's own frame, and keeps the estimated view direction (`meta.extra["view"]`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from facerec3d.geometry.transforms import rotation_from_euler
+from facerec3d.preprocess.detect import DetectConfig, nose_candidates
+from facerec3d.preprocess.pose import fit_face_model, hotelling_rotation, rotation_to_z
+from facerec3d.preprocess.resample import gridify, point_spacing
+from facerec3d.scan import FaceScan
+
+
+@dataclass(frozen=True)
+class OrientConfig:
+    """How a scan without a range-image grid is turned to be seen along +z, head up (module docstring)."""
+
+    enabled: bool = True
+    max_tilt_deg: float = 30.0  # a view within this of +z is the camera's own (a head turned 30° in a camera frame
+    #                             shows a mean normal ~15–25° off the axis, so camera frames are kept as they are)
+    rolls: tuple[float, ...] = (0.0, 45.0, 90.0, 135.0, 180.0, 225.0, 270.0, 315.0)  # degrees: starting turns of
+    #                             the upright fit about the view axis (the coarse fit converges from ±25°)
+    nose_candidates: int = 2  # the strongest nose candidates tried by the upright fit
+    normal_neighbours: int = 12  # neighbours of a point cloud's points whose plane gives its normal
+    sample_mm: float = 2.0  # the upright fit works on a range image of this pitch (or the scan's, if coarser)
+
+
+@dataclass(frozen=True)
+class Orientation:
+    """How a scan was turned: x -> R x (input frame to the frame seen along +z, head up)."""
+
+    R: np.ndarray
+    view: np.ndarray  # unit view direction in the input frame (towards the viewer)
+    turned: bool  # False: the frame was kept as it is (a camera frame, or a grid scan)
+    roll_deg: float  # the head's roll corrected by `upright`
+
+    def record(self) -> dict:
+        return {"direction": [round(float(v), 4) for v in self.view], "turned": self.turned,
+                "roll_deg": round(self.roll_deg, 1)}
+
+
+def _normals(scan: FaceScan, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(unit normals, weights) of the surface: a mesh's triangle normals and areas, or a point cloud's local-plane
+    normals (least-variance axis of each point's k neighbours) with equal weights. Signs as they come."""
+    p = scan.points
+    if scan.mesh is not None and len(scan.mesh):
+        a, b, c = p[scan.mesh[:, 0]], p[scan.mesh[:, 1]], p[scan.mesh[:, 2]]
+        cross = np.cross(b - a, c - a)
+        area = np.linalg.norm(cross, axis=1)
+        ok = area > 0
+        return cross[ok] / area[ok, None], area[ok]
+    from scipy.spatial import cKDTree
+
+    sample = p if len(p) <= 20000 else p[np.random.default_rng(0).choice(len(p), 20000, replace=False)]
+    _, idx = cKDTree(p).query(sample, k=min(k, len(p)))
+    nb = p[idx] - p[idx].mean(axis=1, keepdims=True)
+    _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
+    return vecs[:, :, 0], np.ones(len(sample))
+
+
+def view_axis(scan: FaceScan, config: OrientConfig = OrientConfig()) -> np.ndarray:
+    """The unit axis along which the surface was seen (input frame), its sign not known from the normals alone
+    (a mesh's winding may be either or mixed; a point cloud's normals have none): the area-weighted mean of its unit
+    normals, each turned to the side of the least-variance axis, and that mean turned towards +z."""
+    n, w = _normals(scan, config.normal_neighbours)
+    axis = hotelling_rotation(scan.points)[2]  # the least-variance axis: the rough direction of the normals
+    n = n * np.where(n @ axis < 0, -1.0, 1.0)[:, None]
+    v = (w[:, None] * n).sum(axis=0)
+    v = v / np.linalg.norm(v) if np.linalg.norm(v) > 0 else axis
+    return v if v[2] >= 0 else -v
+
+
+def upright_fit(grid_scan: FaceScan, config: OrientConfig = OrientConfig(),
+                detect: DetectConfig = DetectConfig()) -> tuple[float, float]:
+    """(roll in degrees about +z that turns a scan seen along +z head up, share of points the face fits there): the
+    rigid mean face fitted around the strongest nose candidates from each of `rolls`, the best fit's vertical axis
+    ((0, 0) when nothing can be fitted)."""
+    if grid_scan.n_points < 100:
+        return 0.0, 0.0
+    sub, cands, _ = nose_candidates(grid_scan, detect)
+    best = None
+    for i in cands[: config.nose_candidates]:
+        c = sub.points[i]
+        near = sub.points[np.linalg.norm(sub.points - c, axis=1) <= detect.context_mm]
+        if len(near) < 50:
+            continue
+        R0 = hotelling_rotation(near[np.linalg.norm(near - c, axis=1) <= 0.6 * detect.context_mm])
+        for roll in config.rolls:
+            T = rotation_from_euler(0.0, 0.0, roll) @ R0
+            fit = fit_face_model(near, T, -T @ c, detect.coarse)
+            if best is None or fit.inlier_fraction > best.inlier_fraction:
+                best = fit
+    if best is None:
+        return 0.0, 0.0
+    up = best.R.T @ np.array([0.0, 1.0, 0.0])  # the face's vertical axis in the scan frame
+    return float(np.degrees(np.arctan2(up[0], up[1]))), float(best.inlier_fraction)
+
+
+def _front_points(scan: FaceScan, cell: float) -> FaceScan:
+    """A mesh as it is (it is rasterised at the cell size); a point cloud thinned to its front-most point in each
+    `cell` × `cell` square of x–y, so that its triangulation is quick and regular."""
+    if scan.mesh is not None:
+        return scan
+    key = np.floor(scan.points[:, :2] / cell).astype(np.int64)
+    key = (key[:, 0] - key[:, 0].min()) * (key[:, 1].max() - key[:, 1].min() + 1) + key[:, 1] - key[:, 1].min()
+    order = np.lexsort((-scan.points[:, 2], key))
+    return scan.subset(order[np.r_[True, key[order][1:] != key[order][:-1]]])
+
+
+def orient(scan: FaceScan, config: OrientConfig = OrientConfig(),
+           detect: DetectConfig = DetectConfig()) -> tuple[FaceScan, Orientation]:
+    """The scan turned to be seen along +z, head up, and how (module docstring). Grid scans (range images, depth
+    frames) are in their camera's frame already and come back as they are."""
+    if scan.grid is not None or not config.enabled or scan.n_points < 100:
+        return scan, Orientation(np.eye(3), np.array([0.0, 0.0, 1.0]), False, 0.0)
+    axis = view_axis(scan, config)
+    cell = max(config.sample_mm, point_spacing(scan.points))  # the sign and the roll need only the face's shape
+    best = None
+    for v in (axis, -axis):  # seen from one side of the axis or the other: the side the face fits better
+        turned = bool(np.degrees(np.arccos(np.clip(v[2], -1.0, 1.0))) > config.max_tilt_deg)
+        R = rotation_to_z(v) if turned else np.eye(3)
+        seen = scan.transformed(R, np.zeros(3))
+        roll, fits = upright_fit(gridify(_front_points(seen, cell), cell), config, detect)
+        if best is None or fits > best[0]:
+            best = (fits, Orientation(rotation_from_euler(0.0, 0.0, roll) @ R, v, turned, roll))
+    view = best[1]
+    return scan.transformed(view.R, np.zeros(3)), view

@@ -1,0 +1,93 @@
+"""A gallery's verification threshold calibrated on its own sensor's scans, recorded and used by verify.
+
+The −1.0 mm² ICP default sits at the EER of synthetic laser scans; on Kinect-class depth (4–8 mm steps) genuine
+pairs score well below it, so it rejects genuine claims: a calibrated gallery must accept them at a known FMR."""
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from facerec3d.cli import main
+from facerec3d.datasets.synthetic import DatasetConfig, sensor_profile, write_dataset
+from facerec3d.evaluation.calibrate import calibrate, calibration_scores, gallery_records
+from facerec3d.evaluation.metrics import eer, roc
+from facerec3d.gallery.engine import Engine
+from facerec3d.gallery.service import DEFAULT_THRESHOLDS, enroll_scans, gallery_threshold, scan_records, verify_scan
+from facerec3d.gallery.store import GalleryError, GalleryStore
+from facerec3d.matching.registry import make_matcher
+
+
+@pytest.fixture(scope="module")
+def kinect(tmp_path_factory):
+    """5 subjects x 3 scans of the synthetic 8-bit Kinect v2 (4/8 mm depth steps), FRGC layout."""
+    root = tmp_path_factory.mktemp("kinect")
+    cfg = DatasetConfig(subjects=5, scans=3, scanner=sensor_profile("kinect-v2-8bit"), seed=4)
+    write_dataset(root / "data", cfg)
+    return root / "data"
+
+
+@pytest.fixture(scope="module")
+def gallery(kinect, tmp_path_factory):
+    path = tmp_path_factory.mktemp("g") / "g.sqlite"
+    with GalleryStore(path, create=True) as store, Engine.create(1) as engine:
+        report = enroll_scans(store, scan_records([kinect]), make_matcher("icp"), engine=engine)
+    assert report.enrolled == 15 and not report.failures
+    return path
+
+
+def test_eer_threshold_is_the_scores_own_and_verify_uses_it(gallery):
+    with GalleryStore(gallery) as store, Engine.create(1) as engine:
+        assert store.threshold() is None
+        genuine, impostor, failed = calibration_scores(store, scan_records([store.entries()[0].source]),
+                                                       engine=engine)
+        assert failed == 0 and len(impostor) == 12 and len(genuine) == 2  # its own entry left out
+        record = calibrate(store, None, fmr=None, engine=engine)
+        g, i, _ = calibration_scores(store, gallery_records(store), engine=engine)
+    assert record["rule"] == "eer" and record["genuine_pairs"] == len(g) == 30 and record["impostor_pairs"] == 180
+    assert record["eer"] == pytest.approx(eer(g, i))
+    fmr = np.mean(i >= record["value"])
+    tar = np.mean(g >= record["value"])
+    assert abs((1 - tar) - fmr) <= 1 / 30 + 1 / 180  # at the crossing, to one pair
+    with GalleryStore(gallery) as store:
+        assert store.threshold()["value"] == record["value"]
+        source = store.entries(subject=store.entries()[0].subject)[1].source
+        accepted, score, threshold = verify_scan(store, source, claim=str(store.entries()[0].subject))
+    assert threshold == record["value"] and accepted == (score >= record["value"])
+
+
+def test_calibrated_threshold_accepts_the_genuine_kinect_claims_the_laser_default_rejects(gallery):
+    with GalleryStore(gallery) as store, Engine.create(1) as engine:
+        record = calibrate(store, None, fmr=0.05, engine=engine)
+        g, i, _ = calibration_scores(store, gallery_records(store), engine=engine)
+    laser = DEFAULT_THRESHOLDS["icp"]
+    assert record["value"] < laser  # Kinect depth steps: genuine MSE of several mm²
+    assert np.mean(i >= record["value"]) <= 0.05
+    assert np.mean(g >= record["value"]) > np.mean(g >= laser)
+    fmr, tar, thr = roc(g, i)
+    assert record["value"] in thr  # a threshold of the scores' own ROC
+
+
+def test_calibration_needs_impostors_and_genuine_pairs_for_the_eer(tmp_path, kinect):
+    path = tmp_path / "one.sqlite"
+    one = [r for r in scan_records([kinect]) if r.subject == scan_records([kinect])[0].subject][:1]
+    with GalleryStore(path, create=True) as store, Engine.create(1) as engine:
+        enroll_scans(store, one, make_matcher("icp"), engine=engine)
+        with pytest.raises(GalleryError, match="no impostor pair"):
+            calibrate(store, None, engine=engine)
+        with pytest.raises(GalleryError, match="no calibrated verification threshold"):
+            gallery_threshold(store, "fusion")  # a method without a default
+
+
+def test_cli_enroll_calibrates_and_stats_show_it(kinect, tmp_path):
+    g = tmp_path / "g.sqlite"
+    run = CliRunner().invoke(main, ["enroll", str(kinect), "--gallery", str(g), "--jobs", "1"])
+    assert run.exit_code == 0, run.output
+    assert "verification threshold" in run.output and "recorded" in run.output
+    stats = CliRunner().invoke(main, ["gallery", str(g), "stats"])
+    assert "verification threshold" in stats.output
+    run = CliRunner().invoke(main, ["gallery", str(g), "calibrate", "--eer", "--jobs", "1"])
+    assert run.exit_code == 0 and "(eer:" in run.output, run.output
+    with GalleryStore(g) as store:
+        assert store.threshold()["rule"] == "eer"
+    bad = CliRunner().invoke(main, ["gallery", str(g), "calibrate", "--fmr", "0.0001", "--jobs", "1"])
+    assert bad.exit_code == 2 and "cannot resolve a false-match rate" in bad.output
