@@ -10,6 +10,7 @@ from pathlib import Path
 
 import click
 
+from facerec3d.config import DEFAULT_METHOD
 from facerec3d.errors import FaceRec3DError
 
 
@@ -341,7 +342,7 @@ def _bootstrap_options(fn):
 
 @main.command()
 @click.argument("data", type=click.Path(exists=True))
-@click.option("--method", default="icp", show_default=True,
+@click.option("--method", default=DEFAULT_METHOD, show_default=True,
               help="Matching method: icp, pca, lda, curvature, region-icp, keypoints, fusion.")
 @click.option("--method-config", type=click.Path(exists=True, dir_okay=False),
               help="TOML or JSON file of the method's settings (its config dataclass's fields).")
@@ -382,7 +383,7 @@ def evaluate(data, method, method_config, train, model, out, protocol, config_fi
 @click.argument("data", nargs=-1, required=True, type=click.Path(exists=True))
 @click.option("--gallery", "gallery", type=click.Path(dir_okay=False),
               help="Gallery store (SQLite file; made if missing); or --server.")
-@click.option("--method", default="icp", show_default=True, help="Matching method (as for evaluate).")
+@click.option("--method", default=DEFAULT_METHOD, show_default=True, help="Matching method (as for evaluate).")
 @click.option("--method-config", type=click.Path(exists=True, dir_okay=False), help="TOML or JSON method settings.")
 @click.option("--train", type=click.Path(exists=True), help="Training dataset for learnt methods (pca, lda).")
 @click.option("--model", type=click.Path(exists=True, dir_okay=False), help="Saved model instead of --method/--train.")
@@ -662,7 +663,8 @@ def gallery_stats(store):
               help="Address to listen on; loopback by default (other addresses expose the service: use TLS).")
 @click.option("--port", default=8000, show_default=True)
 @_engine_options
-@click.option("--method", help="Matching method of a new gallery (default icp); an existing gallery's is checked.")
+@click.option("--method", help=f"Matching method of a new gallery (default {DEFAULT_METHOD}); an existing gallery's is "
+              "checked.")
 @click.option("--method-config", type=click.Path(exists=True, dir_okay=False), help="TOML or JSON method settings.")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False),
               help="Preprocessing settings of a new gallery; an existing gallery's are checked.")

@@ -46,6 +46,15 @@ RANGES: dict[str, tuple[float, float, bool]] = {
 }
 
 
+#: The method `evaluate`, `enroll` and the service use when none is named: the z-score fusion of whole-face ICP and
+#: region ICP (FusionConfig's defaults), chosen across every kind of data at once (`benchmarks/default_bench.py`,
+#: docs/methods.md): the best mean rank-1 over the synthetic sensor profiles, outside-model faces and the
+#: rap3df-2019 held-out half together (where it is 5 points below ICP), and on the unseen real Kinect set of issue 21
+#: (0.746 against ICP's 0.615). Its scores are normalised per probe over the gallery, so its thresholds hardly depend on the
+#: sensor (gallery.service.DEFAULT_THRESHOLDS). A name of matching.registry.METHODS.
+DEFAULT_METHOD = "fusion"
+
+
 class Settings(dict):
     """A settings table that remembers the file it was read from, for error messages."""
 

@@ -9,8 +9,9 @@ the store the threshold at a chosen false-match rate (FMR, the operating point a
 equal error rate; `verify` and the service then use it whenever no threshold is given.
 
 With one scan per subject, as galleries usually are, only impostor pairs exist: the threshold at an FMR needs
-nothing else (the score above which `fmr` of the impostor comparisons lie); the equal error rate needs genuine
-pairs too, i.e. a second scan of some subjects (`facerec3d gallery G calibrate MORE_SCANS`).
+nothing else (the score above which `fmr` of the impostor comparisons lie; with fewer than 1 / `fmr` pairs, as
+a gallery of ten people has, just above the highest of them, which the record says); the equal error rate needs
+genuine pairs too, i.e. a second scan of some subjects (`facerec3d gallery G calibrate MORE_SCANS`).
 """
 
 from __future__ import annotations
@@ -80,15 +81,17 @@ def calibrate(store: GalleryStore, records: Sequence[ScanRecord] | None = None, 
     if fmr is None and genuine.size == 0:
         raise GalleryError(f"{store.path}: the equal error rate needs genuine pairs (a second scan of some enrolled "
                            "subjects); give them, or calibrate at a false-match rate")
-    if fmr is not None and fmr * impostor.size < 1:
-        raise GalleryError(f"{store.path}: {impostor.size} impostor pairs cannot resolve a false-match rate of "
-                           f"{fmr:g}: calibrate on more scans or at a higher rate")
     fmrs, tars, thresholds = roc(genuine, impostor)
-    at = _eer(fmrs, tars)[1] if fmr is None else _operating_point(fmrs, tars, fmr)
-    value = float(thresholds[at])
-    if not np.isfinite(value):  # every impostor score is -inf (no match at all): accept any finite score
-        value = float(np.min(np.r_[genuine, impostor][np.isfinite(np.r_[genuine, impostor])], initial=0.0))
-    record = {"value": value, "rule": "eer" if fmr is None else f"fmr={fmr:g}",
+    rule = "eer" if fmr is None else f"fmr={fmr:g}"
+    if fmr is not None and fmr * impostor.size < 1:  # too few pairs to resolve the rate: just above every impostor
+        value = float(np.nextafter(np.max(impostor), np.inf))
+        rule += f" (too few impostor pairs: just above the highest of {impostor.size})"
+    else:
+        value = float(thresholds[_eer(fmrs, tars)[1] if fmr is None else _operating_point(fmrs, tars, fmr)])
+    if not np.isfinite(value):  # no impostor matched at all (-inf): accept any finite score
+        finite = np.r_[genuine, impostor][np.isfinite(np.r_[genuine, impostor])]
+        value = float(np.min(finite, initial=0.0))
+    record = {"value": value, "rule": rule,
               "fmr": float(np.mean(impostor >= value)), "impostor_pairs": int(impostor.size),
               "genuine_pairs": int(genuine.size), "scans": min(len(records), max_scans), "failed_scans": failed,
               "data": "the gallery's own scans" if own else "calibration scans", "entries": len(store.entries()),

@@ -30,12 +30,12 @@ from facerec3d.evaluation.provenance import provenance
 from facerec3d.evaluation.report import write_run
 from facerec3d.gallery.cascade import Cascade, CascadeConfig, check_cascadable
 from facerec3d.gallery.engine import Engine
-from facerec3d.matching.registry import trained_matcher
+from facerec3d.matching.registry import DEFAULT_METHOD, trained_matcher
 from facerec3d.preprocess.batch import DEFAULT_CACHE
 from facerec3d.preprocess.pipeline import QUALITY_FIELDS, PreprocessConfig, scan_quality
 
 
-def evaluate(data: str | Path, method: str = "icp", out: str | Path = "run", *, protocol: str | None = None,
+def evaluate(data: str | Path, method: str = DEFAULT_METHOD, out: str | Path = "run", *, protocol: str | None = None,
              jobs: int = 1, scheduler: Any = None, cache: str | Path | None = DEFAULT_CACHE,
              config: PreprocessConfig = PreprocessConfig(), options: Mapping[str, Any] | None = None,
              train: str | Path | None = None, model: str | Path | None = None, cascade: CascadeConfig | None = None,

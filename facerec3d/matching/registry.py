@@ -17,6 +17,7 @@ from typing import Any
 
 from tqdm import tqdm
 
+from facerec3d.config import DEFAULT_METHOD  # noqa: F401 - the default method, beside the methods
 from facerec3d.datasets.catalog import open_dataset
 from facerec3d.errors import FaceRec3DError
 from facerec3d.matching.base import Matcher, Template
@@ -28,6 +29,7 @@ from facerec3d.workers import Workers
 
 #: Method name → "module:class": the single methods (matching.methods) and their fusion (§8.10).
 METHODS: dict[str, str] = {**SINGLE_METHODS, "fusion": "facerec3d.matching.fusion:FusionMatcher"}
+
 
 
 def matcher_class(method: str) -> type[Matcher]:

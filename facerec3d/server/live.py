@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from facerec3d.config import DEFAULT_METHOD
 from facerec3d.errors import FaceRec3DError
 from facerec3d.gallery.cascade import CascadeConfig, check_cascadable
 from facerec3d.gallery.engine import Engine, Probe, ShardedGallery
@@ -127,7 +128,7 @@ class LiveGallery:
         # a power cut too, not only a killed process
         store._db.execute("PRAGMA synchronous = FULL")
         if store.stats()["method"] is None:
-            matcher = make_matcher(method or "icp", options)
+            matcher = make_matcher(method or DEFAULT_METHOD, options)
             if matcher.needs_training:
                 raise GalleryError(f"method {matcher.name!r} must be trained: enrol a first scan with "
                                    f"`facerec3d enroll --method {matcher.name} --train DATA` and serve that gallery")
