@@ -146,3 +146,143 @@ def test_cli_info_on_the_attack_files_stays_under_1_gib_with_one_line_each(attac
     for name, reason in reasons.items():
         assert any(line.startswith(f"{folder / name}: error:") and reason in line for line in err.splitlines()), \
             (name, err)
+
+
+# ---------------------------------------------------------------- 4. deleting the key file revokes the keys
+def test_deleting_the_key_file_revokes_every_key_and_is_logged(tmp_path, caplog):
+    from facerec3d.server.keys import KeyFile, add_key, remove_key
+
+    keys = tmp_path / "keys.json"
+    alice, bob = add_key(keys, "alice", "query"), add_key(keys, "bob", "admin")
+    kf = KeyFile(keys)
+    assert kf.authenticate(alice).name == "alice"
+    remove_key(keys, "bob")
+    assert kf.authenticate(bob) is None and "1 keys (alice)" in caplog.text
+    keys.unlink()
+    assert kf.authenticate(alice) is None
+    assert f"key file {keys} removed: all 1 keys revoked" in caplog.text
+    keys.write_text("{broken")  # a half-done edit after that: still no key works
+    assert kf.authenticate(alice) is None
+
+
+# ---------------------------------------------------------------- 7. a read-only gallery is refused at start
+def small_gallery(path: Path, key=None):
+    from facerec3d.gallery.store import GalleryStore
+    from facerec3d.matching.icp import ICPMatcher
+    from facerec3d.preprocess import PreprocessConfig
+    from tests.conftest import model_face
+
+    m = ICPMatcher()
+    store = GalleryStore(path, create=True, key=key)
+    store.bind(PreprocessConfig(), m)
+    templates = []
+    for s in range(2):
+        t = m.enroll(model_face(s))
+        t.subject, t.scan_id = f"s{s}", f"s{s}-a"
+        store.add(t, f"/synthetic/{s}")
+        templates.append(t)
+    return store, templates
+
+
+def test_a_read_only_gallery_is_refused_when_the_service_starts(tmp_path):
+    pytest.importorskip("fastapi")
+    from facerec3d.server.keys import add_key
+
+    gallery, keys = tmp_path / "g.sqlite", tmp_path / "keys.json"
+    small_gallery(gallery)[0].close()
+    add_key(keys, "alice", "query")
+    gallery.chmod(0o444)
+    r = CliRunner().invoke(main, ["serve", "--gallery", str(gallery), "--keys", str(keys), "--jobs", "1",
+                                  "--port", "1"])
+    assert r.exit_code == 2 and "Traceback" not in r.output, r.output
+    assert f"error: {gallery}: the gallery is read-only" in r.output
+
+
+# ---------------------------------------------------------------- 8. TLS half set
+def test_tls_needs_both_files(tmp_path):
+    pem = tmp_path / "x.pem"
+    pem.write_text("-")
+    for given, missing in (("--ssl-keyfile", "--ssl-certfile"), ("--ssl-certfile", "--ssl-keyfile")):
+        r = CliRunner().invoke(main, ["serve", "--gallery", str(tmp_path / "g.sqlite"), "--keys",
+                                      str(tmp_path / "k.json"), given, str(pem)])
+        assert r.exit_code == 2 and f"{missing} is missing" in r.output and "AssertionError" not in r.output
+
+
+# ---------------------------------------------------------------- 9. stored templates are for the owner only
+def test_gallery_wal_shm_and_audit_log_are_made_with_mode_0600(tmp_path):
+    from facerec3d.server.live import AuditLog
+
+    old = os.umask(0o022)
+    try:
+        store, _ = small_gallery(tmp_path / "g.sqlite")
+        log = AuditLog(tmp_path / "audit.jsonl")
+        log.write("enrol", entry=1)
+        for name in ("g.sqlite", "g.sqlite-wal", "g.sqlite-shm", "audit.jsonl"):
+            assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o600, name
+        store.close()
+        log.close()
+    finally:
+        os.umask(old)
+
+
+# ---------------------------------------------------------------- encryption at rest
+def test_encrypted_templates_need_their_key_and_reveal_no_geometry(tmp_path, monkeypatch):
+    from facerec3d.gallery.store import KEY_ENV, KEY_FILE_ENV, GalleryError, GalleryStore, TemplateKey
+
+    monkeypatch.delenv(KEY_ENV, raising=False)
+    monkeypatch.delenv(KEY_FILE_ENV, raising=False)
+    key = TemplateKey.make(tmp_path / "key")
+    assert stat.S_IMODE((tmp_path / "key").stat().st_mode) == 0o600
+    store, templates = small_gallery(tmp_path / "g.sqlite", key)
+    assert store.encrypted
+    store._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    raw = (tmp_path / "g.sqlite").read_bytes()
+    for t in templates:
+        for a in t.arrays.values():
+            if a.dtype.kind == "f":  # no point coordinates are in the file in clear (64-byte pieces looked for)
+                assert np.ascontiguousarray(a).tobytes()[:64] not in raw
+    store.close()
+    with pytest.raises(GalleryError, match="encrypted: give its key"):
+        GalleryStore(tmp_path / "g.sqlite")
+    with pytest.raises(GalleryError, match="not the gallery's key"):
+        GalleryStore(tmp_path / "g.sqlite", key=TemplateKey.make(tmp_path / "other"))
+    monkeypatch.setenv(KEY_FILE_ENV, str(tmp_path / "key"))  # the key from the environment
+    with GalleryStore(tmp_path / "g.sqlite") as s:
+        back = s.templates()
+        assert [t.subject for t in back] == ["s0", "s1"]
+        for t, b in zip(templates, back):
+            assert all(np.array_equal(t.arrays[n], b.arrays[n]) for n in t.arrays)
+        # a row moved to another entry (checksum made good) is refused, naming the entry
+        row = s._db.execute("SELECT dtype, shape, data, checksum FROM arrays WHERE entry = 1 AND name = 'points'"
+                            ).fetchone()
+        s._db.execute("UPDATE arrays SET dtype = ?, shape = ?, data = ?, checksum = ? WHERE entry = 2 AND "
+                      "name = 'points'", row)
+        with pytest.raises(GalleryError, match="entry 2 .* cannot be decrypted"):
+            s.templates()
+
+
+def test_rekey_encrypts_a_clear_gallery_and_renews_the_key(tmp_path, monkeypatch):
+    from facerec3d.gallery.store import KEY_ENV, KEY_FILE_ENV, GalleryError, GalleryStore, TemplateKey
+
+    monkeypatch.delenv(KEY_ENV, raising=False)
+    monkeypatch.delenv(KEY_FILE_ENV, raising=False)
+    gallery = tmp_path / "g.sqlite"
+    _, templates = small_gallery(gallery)
+    r = CliRunner().invoke(main, ["gallery", str(gallery), "rekey", "--new-key-file", str(tmp_path / "k1")])
+    assert r.exit_code == 0 and "arrays encrypted" in r.output, r.output
+    with pytest.raises(GalleryError, match="encrypted"):
+        GalleryStore(gallery)
+    monkeypatch.setenv(KEY_FILE_ENV, str(tmp_path / "k1"))
+    r = CliRunner().invoke(main, ["gallery", str(gallery), "rekey", "--new-key-file", str(tmp_path / "k2")])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(main, ["gallery", str(gallery), "list"])  # the old key no longer opens it
+    assert r.exit_code == 2 and "not the gallery's key" in r.output
+    monkeypatch.setenv(KEY_FILE_ENV, str(tmp_path / "k2"))
+    with GalleryStore(gallery) as s:
+        assert all(np.array_equal(t.arrays[n], b.arrays[n]) for t, b in zip(templates, s.templates())
+                   for n in t.arrays)
+    monkeypatch.delenv(KEY_FILE_ENV)  # a clear gallery given a key: refused (its templates would stay clear)
+    small_gallery(tmp_path / "clear.sqlite")[0].close()
+    monkeypatch.setenv(KEY_FILE_ENV, str(tmp_path / "k1"))
+    with pytest.raises(GalleryError, match="not encrypted, but a key is given"):
+        GalleryStore(tmp_path / "clear.sqlite")

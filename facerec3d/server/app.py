@@ -212,7 +212,7 @@ class FailedAuthLog:
                 return
             repeated = seen[1] if seen is not None else 0
             self._seen[client, reason] = [now, 0]
-        self._write("denied", reason=reason, client=client, **fields, **({"repeated": repeated} if repeated else {}))
+        self._write("denied", **fields, reason=reason, client=client, **({"repeated": repeated} if repeated else {}))
 
     def close(self) -> None:
         """Write the repeats not written yet."""
@@ -345,7 +345,8 @@ class Gate:
             if place is not None and not place.handed:
                 place.lane.release(place)
             self.service.metrics.observe(method, endpoint, status[0], time.perf_counter() - t0)
-            if LANES.get((method, endpoint)) == "write" and status[0] >= 400 and status[0] not in (401, 403):
+            if LANES.get((method, endpoint)) == "write" and started[0] and status[0] >= 400 \
+                    and status[0] not in (401, 403):  # (401 and 403 are audited as "denied", see _check)
                 key = scope.get("state", {}).get("api_key")
                 self.service.audit("refused", status=status[0], reason=_reason(bytes(body)), endpoint=endpoint,
                                    path=scope["path"], key=key.name if key else None, client=_client(scope))

@@ -164,9 +164,9 @@ class LiveGallery:
     def _recover(self) -> None:
         """(writer thread, so that no change is under way) New processes for the dead ones, the gallery reloaded."""
         dead = self.engine.broken()
+        self.restarts += 1
         for i in dead:
             self.engine.replace(i)
-        self.restarts += 1
         self._reload()
         print(f"facerec3d service: worker process {', '.join(map(str, dead))} replaced, the gallery reloaded "
               f"({len(self._snap.entries)} entries)", file=sys.stderr, flush=True)
@@ -242,9 +242,9 @@ class LiveGallery:
         except BrokenProcessPool:
             raise WorkerLost() from None
         except RuntimeError:  # a shard missing from a worker put in the place of a dead one
-            if self.restarts == restarts and not self.engine.broken():
-                raise
-            raise WorkerLost() from None
+            if snap.retired or self.restarting or self.restarts != restarts or self.engine.broken():
+                raise WorkerLost() from None
+            raise
         finally:
             with self._lock:
                 snap.users -= 1
