@@ -7,6 +7,8 @@ import gzip
 import json
 import os
 import stat
+import subprocess
+import sys
 import tracemalloc
 import zipfile
 from pathlib import Path
@@ -192,10 +194,10 @@ def test_a_read_only_gallery_is_refused_when_the_service_starts(tmp_path):
     small_gallery(gallery)[0].close()
     add_key(keys, "alice", "query")
     gallery.chmod(0o444)
-    r = CliRunner().invoke(main, ["serve", "--gallery", str(gallery), "--keys", str(keys), "--jobs", "1",
-                                  "--port", "1"])
-    assert r.exit_code == 2 and "Traceback" not in r.output, r.output
-    assert f"error: {gallery}: the gallery is read-only" in r.output
+    r = subprocess.run([sys.executable, "-m", "facerec3d.cli", "serve", "--gallery", str(gallery), "--keys",
+                        str(keys), "--jobs", "1", "--port", "0"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert f"error: {gallery}: the gallery is read-only" in r.stderr
 
 
 # ---------------------------------------------------------------- 8. TLS half set

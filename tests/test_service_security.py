@@ -27,7 +27,7 @@ from facerec3d.server.app import Service, ServiceSettings, create_app  # noqa: E
 from facerec3d.server.keys import KeyFile, add_key  # noqa: E402
 from facerec3d.server.live import AuditLog, LiveGallery  # noqa: E402
 from tests.test_security import attack_files  # noqa: E402
-from tests.test_server import Server, assert_error, make_gallery, probe_file  # noqa: E402
+from tests.test_server import Server, assert_error, call, make_gallery, probe_file  # noqa: E402
 
 MiB = 1 << 20
 
@@ -50,13 +50,6 @@ def served(tmp_path_factory):
                     "--max-points", "50000")
     yield {"tmp": tmp, "gallery": gallery, "key": key, "server": server, "url": server.url}
     server.stop()
-
-
-def call(served, method, path, key="alice", **kw):
-    headers = kw.pop("headers", {})
-    if key is not None:
-        headers["X-API-Key"] = served["key"].get(key, key)
-    return httpx.request(method, served["url"] + path, headers=headers, timeout=120, **kw)
 
 
 def hold(served, path: str, key: str, length: int = 500_000) -> socket.socket:

@@ -3,8 +3,13 @@
 Every request under /v1 (but /v1/health) and /metrics carries an API key (`X-API-Key: KEY` or
 `Authorization: Bearer KEY`), checked before the body is read: 401 without a known key, 403 outside its
 scope. Uploads larger than the limit are refused (413) from Content-Length or while they stream in. Scan work
-goes through a bounded queue: at most `concurrency` requests are worked on, `queue` more wait, and the
-rest are answered 503 (queue full) or 429 (one key holding more than `per_key` places) with Retry-After.
+goes through two bounded lanes, one for identifications and verifications (`concurrency`, `queue`) and one
+for enrolments and removals (`write_concurrency`, `write_queue`), so that neither starves the other: in each,
+at most so many requests are worked on, so many more wait, and the rest are answered 503 (lane full) or 429
+(one key holding more than `per_key` places) with Retry-After — decided from the headers, before the body is
+read. An admitted upload is spooled by the form parser (memory up to 1 MiB, then a temporary file) and read
+into memory only when its work starts. Refused writes (and failed authentication, aggregated) are audited.
+A worker process that dies is replaced within seconds (503 meanwhile, and /v1/health says "degraded").
 Each request has a time limit (`timeout_s`, or less with an `X-Request-Timeout: SECONDS` header): past it
 the answer is 504 and work not yet started is dropped; an enrolment that has begun committing is waited
 for, so an answer never contradicts the store. Errors are one-line JSON: {"error": reason, "status": code}.
