@@ -66,6 +66,10 @@ class WorkerLost(FaceRec3DError):
         super().__init__("a worker process of the service stopped; it is being replaced: retry in a few seconds")
 
 
+def _stopped(dead: list[int]) -> str:
+    return f"worker process {', '.join(map(str, dead))} stopped; it is being replaced"
+
+
 @dataclass(eq=False)
 class Snapshot:
     """One version of the gallery: its shards in the workers and its entries in the same order."""
@@ -141,9 +145,7 @@ class LiveGallery:
     def health(self) -> str | None:
         """Why the service is degraded (a worker process died and is being replaced, or a lasting note), or None."""
         dead = self.engine.broken()
-        if dead:
-            return f"worker process {', '.join(map(str, dead))} stopped; it is being replaced"
-        return self.restarting or self.degraded
+        return _stopped(dead) if dead else self.restarting or self.degraded
 
     def _watch(self) -> None:
         """Replace dead worker processes (killed, out of memory) and reload the gallery into them."""
@@ -151,7 +153,7 @@ class LiveGallery:
             dead = self.engine.broken()
             if not dead and not self.restarting:  # (a failed replacement is tried again)
                 continue
-            self.restarting = f"worker process {', '.join(map(str, dead))} stopped; it is being replaced"
+            self.restarting = _stopped(dead) if dead else self.restarting
             print(f"facerec3d service: {self.restarting}", file=sys.stderr, flush=True)
             try:
                 self._writer.submit(self._recover).result()
