@@ -654,6 +654,27 @@ def gallery_stats(store):
                    f"{t['calibrated_at']})")
 
 
+@gallery.command("rekey")
+@click.option("--new-key-file", required=True, type=click.Path(dir_okay=False),
+              help="The new key (64 hex digits); a new random key is written there (mode 0600) if the file is missing.")
+@click.pass_obj
+@friendly
+def gallery_rekey(store, new_key_file):
+    """Encrypt the stored templates under a new key (AES-256-GCM), or encrypt a clear gallery; the old key comes
+    from FACEREC3D_GALLERY_KEY_FILE or FACEREC3D_GALLERY_KEY. Stop a service on the gallery first."""
+    from facerec3d.gallery.store import KEY_FILE_ENV, GalleryError, GalleryStore, TemplateKey
+
+    if _remote_gallery() is not None:
+        raise click.UsageError("rekey works on a gallery store file, not --server")
+    new = TemplateKey.load(new_key_file) if os.path.exists(new_key_file) else TemplateKey.make(new_key_file)
+    with GalleryStore(store) as s:
+        if s.key is not None and s.key.check == new.check:
+            raise GalleryError(f"{new_key_file}: this is the gallery's key already")
+        n = s.rekey(new)
+    click.echo(f"{store}: {n} arrays encrypted under the key in {new_key_file}; from now on give "
+               f"{KEY_FILE_ENV}={new_key_file}")
+
+
 @main.command()
 @click.option("--gallery", "gallery", required=True, type=click.Path(dir_okay=False),
               help="Gallery store (SQLite file; made if missing, with --method and --config).")
@@ -694,6 +715,9 @@ def serve(gallery, keys_file, host, port, jobs, scheduler, method, method_config
     from facerec3d.config import read_settings
     from facerec3d.preprocess import PreprocessConfig
 
+    if bool(ssl_certfile) != bool(ssl_keyfile):
+        raise click.UsageError("TLS needs both --ssl-certfile and --ssl-keyfile (" +
+                               ("--ssl-keyfile is missing)" if ssl_certfile else "--ssl-certfile is missing)"))
     try:
         loopback = ipaddress.ip_address(host).is_loopback
     except ValueError:

@@ -115,6 +115,23 @@ class Workers:
     def workers(self) -> int:
         return len(self.executors)
 
+    def broken(self) -> list[int]:
+        """The indices of local worker processes that died (killed, out of memory): their executors are broken.
+        Dask workers are looked after by Dask's nannies and never listed."""
+        return [i for i, ex in enumerate(self.executors)
+                if isinstance(ex, ProcessPoolExecutor) and getattr(ex, "_broken", False)]
+
+    def replace(self, i: int) -> None:
+        """Put a new worker process in the place of worker `i` (one that died). It is spawned, not forked: the
+        caller may have threads by now."""
+        import multiprocessing
+
+        old = self.executors[i]
+        new = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker)
+        new.submit(os.getpid).result()  # started and ready
+        self.executors[i] = new
+        old.shutdown(wait=False, cancel_futures=True)
+
     def imap(self, fn: Callable, items: Sequence, *args: Any, depth: int = 2) -> Iterator[Any]:
         """fn(item, *args) for each item, in item order. The first items go one to each worker, then each worker
         gets the next item as soon as it has fewer than `depth` in hand, so uneven calls (a cached scan, a

@@ -21,6 +21,16 @@ for what compiled matching relies on (matching.checks). `content` is the SHA-256
 enrolled from: the same scan under another path is a duplicate.
 Each enrolment (an entry and its arrays) is one transaction, so a crash or kill mid-enrolment leaves every
 earlier enrolment intact and the file readable (SQLite rolls the unfinished one back on the next open).
+A new store file (and SQLite's -wal and -shm files beside it, which take its mode) is made with mode 0600.
+
+Encryption at rest (optional; pip install 'facerec3d[crypto]'): with a `TemplateKey` — given, or from the
+environment: FACEREC3D_GALLERY_KEY_FILE (a file holding the key) or FACEREC3D_GALLERY_KEY (the key), 64 hex
+digits — every array (the templates', and a learnt matcher's) is stored as AES-256-GCM ciphertext: a random
+12-byte nonce, then the ciphertext and its tag, authenticated with the row's place (table, entry, name, dtype,
+shape), so that rows cannot be swapped or altered unnoticed. The key is never stored: meta "encryption" holds
+the scheme and a key check (a hash that tells the right key from a wrong one). Subject ids, scan ids, sources,
+template attributes and failures to enrol stay in clear. `rekey` re-encrypts everything under a new key (or
+encrypts a clear store). See docs/security.md for what this does and does not protect.
 """
 
 from __future__ import annotations
@@ -29,7 +39,10 @@ import functools
 import hashlib
 import json
 import math
+import os
+import secrets
 import sqlite3
+import stat
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -112,6 +125,84 @@ def decode_array(dtype: str, shape: str, data: bytes, checksum: str) -> np.ndarr
     return np.frombuffer(bytearray(data), dtype=dt).reshape(dims)
 
 
+KEY_FILE_ENV = "FACEREC3D_GALLERY_KEY_FILE"  # a file holding the templates' key (64 hex digits)
+KEY_ENV = "FACEREC3D_GALLERY_KEY"  # or the key itself
+SCHEME = "AES-256-GCM"
+
+
+class TemplateKey:
+    """A 256-bit AES-GCM key for a gallery's arrays: from a file or the environment, never from the store."""
+
+    def __init__(self, key: bytes, source: str = "key"):
+        if len(key) != 32:
+            raise GalleryError(f"{source}: a gallery key is 32 bytes (64 hex digits), not {len(key)}")
+        try:
+            from cryptography.hazmat.primitives.ciphers.aead import AESGCM
+        except ImportError:
+            raise GalleryError("encrypted galleries need the cryptography package: pip install 'facerec3d[crypto]'") \
+                from None
+        self._aead, self.source = AESGCM(key), source
+        self.check = hashlib.sha256(b"facerec3d-gallery-key-check\0" + key).hexdigest()[:32]
+
+    @classmethod
+    def from_text(cls, text: str, source: str) -> "TemplateKey":
+        try:
+            key = bytes.fromhex(text.strip())
+        except ValueError:
+            raise GalleryError(f"{source}: a gallery key is 64 hex digits") from None
+        return cls(key, source)
+
+    @classmethod
+    def load(cls, path: str | PathLike) -> "TemplateKey":
+        """The key in a file; GalleryError naming the file when it cannot be read or is not a key."""
+        try:
+            text = Path(path).read_text(encoding="ascii")
+        except (OSError, UnicodeDecodeError) as e:
+            raise GalleryError(f"{path}: cannot read the gallery key ({type(e).__name__})") from None
+        return cls.from_text(text, str(path))
+
+    @classmethod
+    def make(cls, path: str | PathLike) -> "TemplateKey":
+        """A new random key, written to a new file of mode 0600 (never over an existing one)."""
+        text = secrets.token_bytes(32).hex()
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except OSError as e:
+            raise GalleryError(f"{path}: cannot make a key file ({e.strerror})") from None
+        with os.fdopen(fd, "w", encoding="ascii") as f:
+            f.write(text + "\n")
+        return cls.from_text(text, str(path))
+
+    @classmethod
+    def from_environment(cls) -> "TemplateKey | None":
+        """The key FACEREC3D_GALLERY_KEY_FILE or FACEREC3D_GALLERY_KEY gives, or None when neither is set."""
+        path, text = os.environ.get(KEY_FILE_ENV), os.environ.get(KEY_ENV)
+        if path and text:
+            raise GalleryError(f"set {KEY_FILE_ENV} or {KEY_ENV}, not both")
+        if path:
+            return cls.load(path)
+        return cls.from_text(text, KEY_ENV) if text else None
+
+    def seal(self, data: bytes, place: str) -> bytes:
+        """nonce + ciphertext + tag of `data`, bound to its `place`."""
+        nonce = secrets.token_bytes(12)
+        return nonce + self._aead.encrypt(nonce, data, place.encode())
+
+    def open(self, blob: bytes, place: str) -> bytes:
+        """The data `seal` sealed; ValueError when the key is wrong or the bytes or their place were changed."""
+        from cryptography.exceptions import InvalidTag
+
+        try:
+            return self._aead.decrypt(blob[:12], blob[12:], place.encode())
+        except (InvalidTag, ValueError):
+            raise ValueError("cannot be decrypted (damaged, moved, or another key)") from None
+
+
+def _place(table: str, entry: int | None, name: str, dtype: str, shape: str) -> str:
+    """What an encrypted array is bound to: swapping rows, or changing their dtype or shape, fails decryption."""
+    return json.dumps([table, entry, name, str(dtype), str(shape)])
+
+
 def _sqlite_errors(method):
     """Errors of SQLite (a locked, damaged or vanished file) become GalleryError naming the store."""
 
@@ -126,12 +217,21 @@ def _sqlite_errors(method):
 
 
 class GalleryStore:
-    """A gallery store file; `create=True` makes a new one when the file does not exist."""
+    """A gallery store file; `create=True` makes a new one (mode 0600) when the file does not exist. `key`: the
+    templates' key (default: from the environment, see the module docstring); an encrypted store needs it."""
 
-    def __init__(self, path: str | PathLike, create: bool = False):
+    def __init__(self, path: str | PathLike, create: bool = False, key: TemplateKey | None = None):
         self.path = Path(path)
         if not self.path.is_file() and not create:
             raise GalleryError(f"{self.path}: no such gallery (enrol into it first)")
+        self.key = key if key is not None else TemplateKey.from_environment()
+        if not self.path.exists():
+            try:  # made here, so that SQLite's files take this mode: templates are for the owner only
+                os.close(os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+            except FileExistsError:
+                pass
+            except OSError as e:
+                raise GalleryError(f"{self.path}: cannot make the gallery ({e.strerror})") from None
         try:
             self._db = sqlite3.connect(self.path, isolation_level=None, timeout=30.0)
             self._db.execute("PRAGMA foreign_keys = ON")
@@ -142,8 +242,108 @@ class GalleryStore:
                 self._db.execute("INSERT OR IGNORE INTO meta VALUES ('format', ?)", (FORMAT,))
             elif fmt != FORMAT:
                 raise GalleryError(f"{self.path}: gallery format {fmt!r}, this version reads {FORMAT!r}")
-        except sqlite3.DatabaseError as e:
+            self._check_key()
+        except (sqlite3.DatabaseError, GalleryError) as e:
+            if hasattr(self, "_db"):
+                self._db.close()
+            if isinstance(e, GalleryError):
+                raise
             raise GalleryError(f"{self.path}: not a gallery store ({e})") from None
+
+    def _check_key(self) -> None:
+        """Refuse a key that is not the store's, or no key for an encrypted store; an empty clear store given a
+        key becomes encrypted; a clear store with arrays given a key is refused (encrypt it with rekey)."""
+        encryption = self._meta("encryption")
+        if encryption is None:
+            if self.key is None:
+                return
+            if self._db.execute("SELECT (SELECT COUNT(*) FROM arrays) + (SELECT COUNT(*) FROM model_arrays)").fetchone()[0]:
+                raise GalleryError(f"{self.path}: the gallery's templates are not encrypted, but a key is given "
+                                   f"({self.key.source}): encrypt them first (facerec3d gallery {self.path} rekey "
+                                   f"--new-key-file FILE), or unset {KEY_FILE_ENV} and {KEY_ENV}")
+            self._db.execute("INSERT OR REPLACE INTO meta VALUES ('encryption', ?)",
+                             (json.dumps({"scheme": SCHEME, "key_check": self.key.check}),))
+            return
+        try:
+            check = json.loads(encryption)["key_check"]
+        except (ValueError, TypeError, KeyError):
+            raise GalleryError(f"{self.path}: damaged encryption settings") from None
+        if self.key is None:
+            raise GalleryError(f"{self.path}: the gallery's templates are encrypted: give its key "
+                               f"({KEY_FILE_ENV}=FILE, or {KEY_ENV})")
+        if self.key.check != check:
+            raise GalleryError(f"{self.path}: the key given ({self.key.source}) is not the gallery's key")
+
+    @property
+    def encrypted(self) -> bool:
+        return self._meta("encryption") is not None
+
+    def _stored(self, encoded: tuple[str, str, bytes, str], table: str, entry: int | None,
+                name: str) -> tuple[str, str, str, bytes, str]:
+        """(name, dtype, shape, stored bytes, checksum of what is stored) of an `encode_array` output: encrypted
+        with a key, bound to its place."""
+        dtype, shape, data, checksum = encoded
+        if self.key is not None:
+            data = self.key.seal(data, _place(table, entry, name, dtype, shape))
+            checksum = _checksum(dtype, shape, data=data)
+        return name, dtype, shape, data, checksum
+
+    def _loaded(self, table: str, entry: int | None, name: str, dtype: str, shape: str, data: bytes,
+                checksum: str) -> np.ndarray:
+        """The array of a row `_stored` made; ValueError (the reason) when it is damaged or cannot be decrypted."""
+        if self.key is None:
+            return decode_array(dtype, shape, data, checksum)
+        if not isinstance(data, bytes) or _checksum(str(dtype), str(shape), data=data) != checksum:
+            raise ValueError("checksum mismatch (damaged bytes)")
+        plain = self.key.open(data, _place(table, entry, name, dtype, shape))
+        return decode_array(dtype, shape, plain, _checksum(str(dtype), str(shape), data=plain))
+
+    @_sqlite_errors
+    def check_writable(self) -> None:
+        """Refuse a store that cannot be written (read-only file or folder, or a read-only file system)."""
+        st = self.path.stat()
+        if not st.st_mode & stat.S_IWUSR or not os.access(self.path, os.W_OK):
+            raise GalleryError(f"{self.path}: the gallery is read-only (mode {stat.filemode(st.st_mode)}); make it "
+                               "writable (chmod u+w) or serve a copy")
+        if not os.access(self.path.parent, os.W_OK | os.X_OK):
+            raise GalleryError(f"{self.path}: its folder is read-only (SQLite writes its journal beside the file)")
+        try:
+            with self._transaction():  # a write that is rolled back: fails on a read-only file system
+                version = self._db.execute("PRAGMA user_version").fetchone()[0]
+                self._db.execute(f"PRAGMA user_version = {int(version)}")
+        except sqlite3.OperationalError as e:
+            raise GalleryError(f"{self.path}: the gallery cannot be written ({e})") from None
+
+    @_sqlite_errors
+    def rekey(self, new: TemplateKey) -> int:
+        """Re-encrypt every array under key `new` (encrypting a clear store), in one transaction, then rewrite the
+        file so that no old bytes are left in it; returns the number of arrays. The old key is the store's."""
+        with self._transaction():
+            self._db.execute("PRAGMA secure_delete = ON")
+            n = 0
+            for table, key_col in (("arrays", "entry"), ("model_arrays", None)):
+                rows = self._db.execute(f"SELECT {key_col or 'NULL'}, name, dtype, shape, data, checksum FROM {table}"
+                                        ).fetchall()
+                for entry, name, dtype, shape, data, checksum in rows:
+                    try:
+                        a = self._loaded(table, entry, name, dtype, shape, data, checksum)
+                    except ValueError as e:
+                        raise GalleryError(f"{self.path}: {table} row {entry} {name!r} is damaged: {e}") from None
+                    old, self.key = self.key, new
+                    try:
+                        *_, sealed, sealed_checksum = self._stored(encode_array(a), table, entry, name)
+                    finally:
+                        self.key = old
+                    where = "name = ?" + (f" AND {key_col} = ?" if key_col else "")
+                    self._db.execute(f"UPDATE {table} SET data = ?, checksum = ? WHERE {where}",
+                                     (sealed, sealed_checksum, name, *([entry] if key_col else [])))
+                    n += 1
+            self._db.execute("INSERT OR REPLACE INTO meta VALUES ('encryption', ?)",
+                             (json.dumps({"scheme": SCHEME, "key_check": new.check}),))
+        self.key = new
+        self._db.execute("VACUUM")  # the old ciphertext (or clear text) leaves the file ...
+        self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")  # ... and the write-ahead log
+        return n
 
     # ------------------------------------------------------------------ plumbing
     def close(self) -> None:
@@ -186,7 +386,8 @@ class GalleryStore:
                     ("options", json.dumps(matcher.options(), sort_keys=True)),
                     ("state", json.dumps(attrs, sort_keys=True))])
                 self._db.executemany("INSERT INTO model_arrays VALUES (?, ?, ?, ?, ?)",
-                                     [(name, *encode_array(a)) for name, a in arrays.items()])
+                                     [self._stored(encode_array(a), "model_arrays", None, name)
+                                      for name, a in arrays.items()])
                 return
         self.check_preprocess(preprocess)
         self.check_matcher(matcher)
@@ -224,7 +425,7 @@ class GalleryStore:
         arrays = {}
         for name, *rest in self._db.execute("SELECT name, dtype, shape, data, checksum FROM model_arrays"):
             try:
-                arrays[name] = decode_array(*rest)
+                arrays[name] = self._loaded("model_arrays", None, name, *rest)
             except ValueError as e:
                 raise GalleryError(f"{self.path}: the matcher's learnt array {name!r} is damaged: {e}") from None
         state = json.loads(self._require("state"))
@@ -266,7 +467,7 @@ class GalleryStore:
     def add(self, template: Template, source: str, content: str | None = None) -> int:
         """Store one template (one transaction) and clear the source's failure to enrol, if any; returns its
         id. `content`: a hash of the scan file's bytes. AlreadyEnrolled when the source, or the content, is."""
-        arrays = [(name, *encode_array(a)) for name, a in template.arrays.items()]
+        encoded = {name: encode_array(a) for name, a in template.arrays.items()}
         with self._transaction():
             twin = self._db.execute("SELECT id, source FROM entries WHERE source = ? OR content = ?",
                                     (source, content)).fetchone()
@@ -278,7 +479,8 @@ class GalleryStore:
                 "INSERT INTO entries (subject, scan_id, source, method, attrs, content, nbytes, enrolled_at, checksum) "
                 "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)", (*fields, content, template.nbytes, time.time(), _checksum(*fields)))
             entry = cur.lastrowid
-            self._db.executemany("INSERT INTO arrays VALUES (?, ?, ?, ?, ?, ?)", [(entry, *a) for a in arrays])
+            self._db.executemany("INSERT INTO arrays VALUES (?, ?, ?, ?, ?, ?)",
+                                 [(entry, *self._stored(e, "arrays", entry, name)) for name, e in encoded.items()])
             self._db.execute("DELETE FROM failures WHERE source = ?", (source,))
         return int(entry)
 
@@ -320,7 +522,7 @@ class GalleryStore:
                 arrays = {}
                 for name, *rest in rows:
                     what = f"array {name!r}"
-                    arrays[name] = decode_array(*rest)
+                    arrays[name] = self._loaded("arrays", e.id, name, *rest)
                 what = "template"
                 template = Template(e.subject, e.scan_id, method, arrays, json.loads(attrs))
                 check_template(template)

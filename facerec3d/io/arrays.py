@@ -13,9 +13,10 @@ invalid pixels), or `points` (N, 3), and landmarks as (3,) arrays named
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import json
+import math
+import zipfile
+from pathlib import Path
 
 import numpy as np
 
@@ -26,12 +27,35 @@ from facerec3d.scan import FaceScan
 LANDMARK_PREFIX = "landmark_"
 META_KEY = "meta_json"  # the scan's meta.extra (quality, frontal transform) as JSON text
 PROVENANCE_KEY = "provenance"  # (H, W) uint8 image of a grid scan's FaceScan.provenance
-MAX_MEMBER_BYTES = MAX_POINTS * 3 * 8 + 4096  # largest .npz member accepted (uncompressed)
+MAX_MEMBERS = 256  # members of an .npz (the scan, its mask, its meta and landmarks)
+MAX_META_CHARS = 1 << 20  # characters of the meta_json text
+MAX_ITEM_BYTES = 8  # bytes per value: float64 is the widest numeric type read
+
+
+def _points(path: str | Path, shape: tuple[int, ...]) -> int:
+    """The points an (H, W, 3), (H, W) or (N, 3) array would make, from its shape alone."""
+    if len(shape) == 3 and shape[2] == 3:
+        return shape[0] * shape[1]
+    if len(shape) == 2:
+        return shape[0] if shape[1] == 3 else shape[0] * shape[1]
+    raise ScanFormatError(path, f"array of shape {shape} is neither (H, W, 3), (H, W) nor (N, 3)")
+
+
+def _check_array(path: str | Path, what: str, shape: tuple[int, ...], dtype: np.dtype) -> None:
+    """Refuse, from its header alone (before anything is read or converted), a scan array that is not numeric
+    or would hold more than MAX_POINTS points."""
+    if dtype.kind not in "fiub" or dtype.itemsize > MAX_ITEM_BYTES:
+        raise ScanFormatError(path, f"{what}: array of {dtype} is not numeric")
+    n = _points(path, shape) if what != "valid" else math.prod(shape)
+    if n > MAX_POINTS:
+        raise ScanFormatError(path, f"absurd size: {what} array of shape {shape} has {n} points "
+                                    f"(more than {MAX_POINTS})")
 
 
 def _from_array(path: str | Path, a: np.ndarray, valid: np.ndarray | None = None) -> FaceScan:
-    """A scan from an (H, W, 3), (H, W) or (N, 3) array (see the module docstring)."""
-    if a.dtype.kind not in "fiu":
+    """A scan from an (H, W, 3), (H, W) or (N, 3) array (see the module docstring), its size checked first."""
+    _check_array(path, "the scan", a.shape, a.dtype)
+    if a.dtype.kind == "b":
         raise ScanFormatError(path, f"array of {a.dtype} is not numeric")
     a = np.asarray(a, dtype=np.float64)
     if a.ndim == 2 and a.shape[1] != 3:  # a depth map
@@ -43,35 +67,62 @@ def _from_array(path: str | Path, a: np.ndarray, valid: np.ndarray | None = None
         if valid.shape != a.shape[:2] or valid.dtype.kind not in "biu":
             raise ScanFormatError(path, f"'valid' must be an {a.shape[:2]} boolean mask, not {valid.dtype} {valid.shape}")
         return grid_scan(path, a, valid.astype(bool))
-    if a.ndim == 2:
-        return point_scan(path, a[~np.isnan(a).any(axis=1)])
-    raise ScanFormatError(path, f"array of shape {a.shape} is neither (H, W, 3), (H, W) nor (N, 3)")
+    return point_scan(path, a[~np.isnan(a).any(axis=1)])
+
+
+def _member_header(path: str | Path, z: zipfile.ZipFile, member: str) -> tuple[tuple[int, ...], np.dtype]:
+    """(shape, dtype) of an .npz member from its .npy header, read without inflating the data."""
+    with z.open(member) as f:
+        version = np.lib.format.read_magic(f)
+        read_header = {(1, 0): np.lib.format.read_array_header_1_0,
+                       (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+        if read_header is None:
+            raise ScanFormatError(path, f"member {member[:80]!r}: unsupported .npy version {version}")
+        shape, _, dtype = read_header(f)
+    return shape, dtype
 
 
 def read_numpy(path: str | Path) -> FaceScan:
-    """A scan from an `.npy` or `.npz` file (see the module docstring)."""
+    """A scan from an `.npy` or `.npz` file (see the module docstring). Every array's size and type are checked
+    from its header before it is read, so no file (whatever it claims) takes more memory than the largest scan
+    accepted (MAX_POINTS points)."""
     with library_errors(path, "NumPy file"):
         with open(path, "rb") as f:
             magic = f.read(4)
         if not magic.startswith(b"PK"):  # not a zip: a single .npy array, memory-mapped until checked
             return _from_array(path, np.load(path, mmap_mode="r", allow_pickle=False))
         with np.load(path, allow_pickle=False) as z:
-            for name in z.zip.namelist():
-                if z.zip.getinfo(name).file_size > MAX_MEMBER_BYTES:
-                    raise ScanFormatError(path, f"absurd size: member {name[:80]!r} is over {MAX_MEMBER_BYTES} bytes")
-            key = "xyz" if "xyz" in z.files else "points" if "points" in z.files else None
+            members = z.zip.namelist()
+            if len(members) > MAX_MEMBERS:
+                raise ScanFormatError(path, f"absurd .npz: {len(members)} members (more than {MAX_MEMBERS})")
+            headers = {m[:-4] if m.endswith(".npy") else m: _member_header(path, z.zip, m) for m in members}
+            key = "xyz" if "xyz" in headers else "points" if "points" in headers else None
             if key is None:
                 raise ScanFormatError(path, "an .npz scan needs an 'xyz' or a 'points' array")
-            scan = _from_array(path, z[key], z["valid"] if key == "xyz" and "valid" in z.files else None)
-            landmarks = {k[len(LANDMARK_PREFIX) :]: z[k] for k in z.files if k.startswith(LANDMARK_PREFIX)}
-            extra = _meta_extra(path, z[META_KEY]) if META_KEY in z.files else {}
-            if PROVENANCE_KEY in z.files and scan.grid is not None:
-                image = z[PROVENANCE_KEY]
-                if image.shape != scan.grid_shape or image.dtype != np.uint8:
+            _check_array(path, key, *headers[key])
+            mask = key == "xyz" and "valid" in headers
+            if mask:
+                _check_array(path, "valid", *headers["valid"])
+            names = [k for k in headers if k.startswith(LANDMARK_PREFIX)]
+            for name in names:
+                shape, dtype = headers[name]
+                if shape != (3,) or dtype.kind not in "fiu" or dtype.itemsize > MAX_ITEM_BYTES:
+                    raise ScanFormatError(path, f"landmark {name[len(LANDMARK_PREFIX):][:80]!r} is not a finite "
+                                                "3-vector")
+            if META_KEY in headers:
+                shape, dtype = headers[META_KEY]
+                if dtype.kind != "U" or shape != () or dtype.itemsize > 4 * MAX_META_CHARS:
+                    raise ScanFormatError(path, f"'{META_KEY}' must be one JSON text of at most {MAX_META_CHARS} "
+                                                "characters")
+            scan = _from_array(path, z[key], z["valid"] if mask else None)
+            landmarks = {k[len(LANDMARK_PREFIX) :]: z[k] for k in names}
+            extra = _meta_extra(path, z[META_KEY]) if META_KEY in headers else {}
+            if PROVENANCE_KEY in headers and scan.grid is not None:
+                if headers[PROVENANCE_KEY] != (scan.grid_shape, np.dtype(np.uint8)):
                     raise ScanFormatError(path, f"'{PROVENANCE_KEY}' must be a {scan.grid_shape} uint8 image")
-                scan = scan.replace(provenance=image[scan.grid[:, 0], scan.grid[:, 1]])
+                scan = scan.replace(provenance=z[PROVENANCE_KEY][scan.grid[:, 0], scan.grid[:, 1]])
     for name, v in landmarks.items():
-        if v.shape != (3,) or v.dtype.kind not in "fiu" or not np.isfinite(v).all():
+        if not np.isfinite(v).all():
             raise ScanFormatError(path, f"landmark {name[:80]!r} is not a finite 3-vector")
     return scan.replace(landmarks=landmarks, meta=scan.meta.replace(extra=extra))
 

@@ -25,6 +25,7 @@ from facerec3d.scan import FaceScan, ScanMeta
 HEADER = struct.Struct("<HHdH")  # rows, columns, zmin, texture name length
 COUNT = struct.Struct("<I")
 INVALID_Z = -1e9  # the zmin of the real Bosphorus files
+MAX_LM3_BYTES = 1 << 20  # a landmark file holds a few dozen lines
 LM3_COUNT_LINE = re.compile(r"([0-9]+)\s+landmarks?:?", re.IGNORECASE)
 
 
@@ -82,7 +83,7 @@ def write_bnt(scan: FaceScan, path: str | Path, texture_name: str = "") -> None:
 
 def load_landmarks_lm3(path: str | Path) -> dict[str, np.ndarray]:
     """Bosphorus `.lm3` landmarks: name -> (3,) float64 position in mm. ScanFormatError if malformed."""
-    lines = [line.strip() for line in read_bytes(path).decode("latin-1").splitlines()]
+    lines = [line.strip() for line in read_bytes(path, MAX_LM3_BYTES).decode("latin-1").splitlines()]
     lines = [line for line in lines if line and not line.startswith("#")]
     start = next((i for i, line in enumerate(lines[:2]) if LM3_COUNT_LINE.fullmatch(line)), None)
     if start is None:

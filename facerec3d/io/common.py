@@ -55,10 +55,13 @@ def open_binary(path: str | Path) -> Iterator[BinaryIO]:
         raise ScanFormatError(path, f"cannot read ({describe(e)})") from None
 
 
-def read_bytes(path: str | Path) -> bytes:
-    """The whole file, or ScanFormatError when it cannot be read."""
+def read_bytes(path: str | Path, max_bytes: int | None = None) -> bytes:
+    """The whole file, or ScanFormatError when it cannot be read or is longer than `max_bytes` (when given)."""
     with open_binary(path) as f:
-        return f.read()
+        data = f.read() if max_bytes is None else f.read(max_bytes + 1)
+    if max_bytes is not None and len(data) > max_bytes:
+        raise ScanFormatError(path, f"absurd size: more than {max_bytes} bytes")
+    return data
 
 
 def check_grid_size(path: str | Path, rows: int, cols: int) -> int:

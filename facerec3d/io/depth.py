@@ -94,6 +94,8 @@ class Intrinsics:
             data = json.loads(text)
         except json.JSONDecodeError as e:
             raise ScanFormatError(path, f"intrinsics are not valid JSON (line {e.lineno}: {e.msg})") from None
+        except (ValueError, RecursionError) as e:  # an integer of thousands of digits, nesting too deep
+            raise ScanFormatError(path, f"intrinsics are not usable JSON ({type(e).__name__})") from None
         return cls.from_dict(data, path)
 
     def save(self, path: str | Path) -> None:
@@ -104,8 +106,16 @@ class Intrinsics:
         return depth_mm / math.sqrt(self.fx * self.fy)
 
 
+def _float(value: int | float) -> float:
+    """The value as a float; infinity for an integer too large for one."""
+    try:
+        return float(value)
+    except OverflowError:
+        return math.inf
+
+
 def _number(value, source, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(_float(value)):
         raise ScanFormatError(source, f"intrinsics: {name!r} must be a finite number, not {value!r}"[:200])
     return float(value)
 

@@ -6,12 +6,13 @@ ignored; `#` starts a comment; a first line of column names is skipped.
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
 
 from facerec3d.errors import ScanFormatError
-from facerec3d.io.common import point_scan, read_bytes
+from facerec3d.io.common import MAX_POINTS, open_binary, point_scan
 from facerec3d.scan import FaceScan
 
 
@@ -23,18 +24,41 @@ def _is_number(token: str) -> bool:
     return True
 
 
+MAX_LINE = 4096  # characters in one line: a point needs a few dozen
+CHUNK_LINES = 65536  # lines parsed at a time
+
+
 def read_text_points(path: str | Path) -> FaceScan:
-    """A text point cloud (see the module docstring)."""
-    text = read_bytes(path).decode("utf-8-sig", errors="replace")
-    rows = [line.split("#", 1)[0].replace(",", " ").split() for line in text.splitlines()]
-    rows = [row for row in rows if row]
-    if rows and not _is_number(rows[0][0]):
-        rows = rows[1:]  # a header of column names
-    short = next((row for row in rows if len(row) < 3), None)
-    if short is not None:
-        raise ScanFormatError(path, f"a line has fewer than 3 columns: {' '.join(short)[:80]!r}")
-    try:
-        points = np.array([row[:3] for row in rows], dtype=np.float64).reshape(-1, 3)
-    except ValueError:
-        raise ScanFormatError(path, "non-numeric value in the point data") from None
+    """A text point cloud (see the module docstring), read a block of lines at a time: a line longer than
+    MAX_LINE characters, or more than MAX_POINTS points, is refused as soon as it is met."""
+    blocks, count, first = [], 0, True
+    with open_binary(path) as raw, io.TextIOWrapper(raw, encoding="utf-8-sig", errors="replace") as f:
+        while True:
+            rows = []
+            while len(rows) < CHUNK_LINES:
+                line = f.readline(MAX_LINE + 1)
+                if not line:
+                    break
+                if len(line) > MAX_LINE:
+                    raise ScanFormatError(path, f"a line is longer than {MAX_LINE} characters")
+                row = line.split("#", 1)[0].replace(",", " ").split()[:4]
+                if not row:
+                    continue
+                if first and not _is_number(row[0]):
+                    first = False
+                    continue  # a header of column names
+                first = False
+                if len(row) < 3:
+                    raise ScanFormatError(path, f"a line has fewer than 3 columns: {' '.join(row)[:80]!r}")
+                rows.append(row[:3])
+            if not rows:
+                break
+            count += len(rows)
+            if count > MAX_POINTS:
+                raise ScanFormatError(path, f"absurd size: more than {MAX_POINTS} points")
+            try:
+                blocks.append(np.array(rows, dtype=np.float64))
+            except ValueError:
+                raise ScanFormatError(path, "non-numeric value in the point data") from None
+    points = np.concatenate(blocks) if blocks else np.zeros((0, 3))
     return point_scan(path, points)

@@ -3,8 +3,13 @@
 Every request under /v1 (but /v1/health) and /metrics carries an API key (`X-API-Key: KEY` or
 `Authorization: Bearer KEY`), checked before the body is read: 401 without a known key, 403 outside its
 scope. Uploads larger than the limit are refused (413) from Content-Length or while they stream in. Scan work
-goes through a bounded queue: at most `concurrency` requests are worked on, `queue` more wait, and the
-rest are answered 503 (queue full) or 429 (one key holding more than `per_key` places) with Retry-After.
+goes through two bounded lanes, one for identifications and verifications (`concurrency`, `queue`) and one
+for enrolments and removals (`write_concurrency`, `write_queue`), so that neither starves the other: in each,
+at most so many requests are worked on, so many more wait, and the rest are answered 503 (lane full) or 429
+(one key holding more than `per_key` places) with Retry-After — decided from the headers, before the body is
+read. An admitted upload is spooled by the form parser (memory up to 1 MiB, then a temporary file) and read
+into memory only when its work starts. Refused writes (and failed authentication, aggregated) are audited.
+A worker process that dies is replaced within seconds (503 meanwhile, and /v1/health says "degraded").
 Each request has a time limit (`timeout_s`, or less with an `X-Request-Timeout: SECONDS` header): past it
 the answer is 504 and work not yet started is dropped; an enrolment that has begun committing is waited
 for, so an answer never contradicts the store. Errors are one-line JSON: {"error": reason, "status": code}.
@@ -36,27 +41,33 @@ from fastapi.exceptions import RequestValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import JSONResponse, PlainTextResponse
 
-from facerec3d.errors import FaceRec3DError
+from facerec3d.errors import FaceRec3DError, ScanFormatError
 from facerec3d.gallery.cascade import CascadeConfig
 from facerec3d.gallery.store import Entry, GalleryError
-from facerec3d.io import SUPPORTED_SUFFIXES, scan_stem, scan_suffix
+from facerec3d.io import SUPPORTED_SUFFIXES, Intrinsics, scan_stem, scan_suffix
 from facerec3d.server.jobs import Rejected, Upload, enrol_job, probe_job
 from facerec3d.server.keys import KeyFile
-from facerec3d.server.live import Conflict, LiveGallery, NotFound
+from facerec3d.server.live import Conflict, LiveGallery, NotFound, WorkerLost
 
 API = "/v1"
-_LABEL = re.compile(r"^[\w.@+:-]{1,128}$")  # subject and scan ids: no spaces, slashes or control characters
+_LABEL = re.compile(r"[\w.@+:-]{1,128}")  # subject and scan ids (fullmatch): no spaces, slashes or control characters
 
 
 @dataclass
 class ServiceSettings:
     """Limits of a service (see `facerec3d serve --help`)."""
 
-    concurrency: int = 4  # requests worked on at once
-    queue: int = 32  # requests waiting beyond those; more are answered 503
-    per_key: int | None = None  # requests queued or running for one key; more are 429 (default: half the places)
+    concurrency: int = 4  # identifications and verifications worked on at once
+    queue: int = 32  # of those, waiting beyond the ones worked on; more are answered 503
+    per_key: int | None = None  # requests queued or running for one key, per lane; more are 429 (default: half
+    #                             the lane's places)
     timeout_s: float = 60.0  # time limit per request
     max_upload_bytes: int = 64 * 2**20  # largest request body
+    write_concurrency: int = 2  # enrolments and removals worked on at once: their own lane, so that queries
+    #                             cannot starve them (and the other way round)
+    write_queue: int = 16  # of those, waiting beyond the ones worked on; more are answered 503
+    failed_auth_interval_s: float = 60.0  # audit failed authentication once per client and reason in this time;
+    #                                       the repeats are counted and written with the next line
 
 
 class ApiError(Exception):
@@ -101,32 +112,59 @@ class Job:
             return True
 
 
-class WorkQueue:
-    """At most `concurrency` jobs at once on threads (which hand scans to the engine's workers), `queue` more
-    waiting; beyond that 503, and 429 for a key holding more than `per_key` places."""
+class Place:
+    """A request's place in a lane, held from admission (before its body is read) until its work is done."""
 
-    def __init__(self, concurrency: int, queue: int, per_key: int | None):
+    def __init__(self, lane: "Lane", who: str):
+        self.lane, self.who = lane, who
+        self.handed = self.released = False
+
+
+class Lane:
+    """At most `concurrency` jobs at once on threads (which hand scans to the engine's workers), `queue` more
+    admitted and waiting; beyond that 503, and 429 for a key holding more than `per_key` places. A place is
+    taken when the request arrives, before its upload is read, so a refused request costs no memory."""
+
+    def __init__(self, name: str, concurrency: int, queue: int, per_key: int | None):
+        self.name = name
         self.concurrency, self.capacity = max(1, concurrency), max(1, concurrency) + max(0, queue)
         self.per_key = per_key or max(1, self.capacity // 2)
         self.pending = self.running = 0
         self.by_key: Counter[str] = Counter()
         self._lock = threading.Lock()
-        self._pool = ThreadPoolExecutor(self.concurrency, thread_name_prefix="facerec3d-work")
+        self._pool = ThreadPoolExecutor(self.concurrency, thread_name_prefix=f"facerec3d-{name}")
 
     @property
     def waiting(self) -> int:
         return self.pending - self.running
 
-    def submit(self, who: str, job: Job, fn, *args) -> Future:
+    def admit(self, who: str) -> Place:
+        """A place for key `who`, or ApiError 503 (the lane is full) / 429 (the key holds too many places)."""
         with self._lock:
             if self.pending >= self.capacity:
-                raise ApiError(503, f"the service is busy: its work queue is full ({self.pending} requests); "
+                raise ApiError(503, f"the service is busy: its {self.name} queue is full ({self.pending} requests); "
                                     "retry later", {"Retry-After": "1"})
             if self.by_key[who] >= self.per_key:
-                raise ApiError(429, f"too many requests in progress for key {who!r} (at most {self.per_key}); "
-                                    "retry later", {"Retry-After": "1"})
+                raise ApiError(429, f"too many {self.name} requests in progress for key {who!r} (at most "
+                                    f"{self.per_key}); retry later", {"Retry-After": "1"})
             self.pending += 1
             self.by_key[who] += 1
+        return Place(self, who)
+
+    def release(self, place: Place) -> None:
+        """Give a place back (once; later calls do nothing)."""
+        with self._lock:
+            if place.released:
+                return
+            place.released = True
+            self.pending -= 1
+            self.by_key[place.who] -= 1
+            if not self.by_key[place.who]:
+                del self.by_key[place.who]
+
+    def submit(self, place: Place, job: Job, fn, *args) -> Future:
+        """fn(job, *args) on a thread of the lane; the place is given back when it is done."""
+        place.handed = True
 
         def run():
             with self._lock:
@@ -137,15 +175,57 @@ class WorkQueue:
             finally:
                 with self._lock:
                     self.running -= 1
-                    self.pending -= 1
-                    self.by_key[who] -= 1
-                    if not self.by_key[who]:
-                        del self.by_key[who]
+                self.release(place)
 
-        return self._pool.submit(run)
+        try:
+            return self._pool.submit(run)
+        except BaseException:
+            self.release(place)
+            raise
+
+    def stats(self) -> dict:
+        return {"running": self.running, "waiting": self.waiting, "concurrency": self.concurrency,
+                "capacity": self.capacity, "per_key": self.per_key}
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+#: the lane of each endpoint that does scan work or changes the gallery, by (method, endpoint label)
+LANES = {("POST", f"{API}/identify"): "query", ("POST", f"{API}/verify"): "query",
+         ("POST", f"{API}/enrol"): "write", ("DELETE", f"{API}/subjects/{{ident}}"): "write"}
+
+
+class FailedAuthLog:
+    """Audit lines for failed authentication, at most one per (client, reason) every `interval_s`: the repeats
+    in between are counted and written with the next line (`repeated`), or on close. At most `clients` pairs
+    are followed; beyond them, requests are counted under client "*"."""
+
+    def __init__(self, write, interval_s: float, clients: int = 1024):
+        self._write, self.interval_s, self.clients = write, interval_s, clients
+        self._seen: dict[tuple[str, str], list] = {}  # (client, reason) -> [time of the last line, repeats since]
+        self._lock = threading.Lock()
+
+    def __call__(self, client: str, reason: str, **fields: Any) -> None:
+        now = time.monotonic()
+        with self._lock:
+            if (client, reason) not in self._seen and len(self._seen) >= self.clients:
+                client = "*"
+            seen = self._seen.get((client, reason))
+            if seen is not None and now - seen[0] < self.interval_s:
+                seen[1] += 1
+                return
+            repeated = seen[1] if seen is not None else 0
+            self._seen[client, reason] = [now, 0]
+        self._write("denied", **fields, reason=reason, client=client, **({"repeated": repeated} if repeated else {}))
+
+    def close(self) -> None:
+        """Write the repeats not written yet."""
+        with self._lock:
+            left = [(c, r, n) for (c, r), (_, n) in self._seen.items() if n]
+            self._seen.clear()
+        for client, reason, n in left:
+            self._write("denied", reason=reason, client=client, repeated=n)
 
 
 # ---------------------------------------------------------------------------------------------- metrics
@@ -221,8 +301,9 @@ def _api_key(headers: dict[bytes, bytes]) -> str | None:
 
 
 class Gate:
-    """ASGI middleware before FastAPI: authentication and scopes (before the body is read), the upload size
-    limit, and the metrics of every answer."""
+    """ASGI middleware before FastAPI: authentication and scopes, the upload size limit and admission to the
+    work queue's lanes, all before the body is read; the metrics of every answer; and the audit lines of every
+    refused write (failed authentication aggregated, see `FailedAuthLog`)."""
 
     def __init__(self, app, service: "Service"):
         self.app, self.service = app, service
@@ -232,17 +313,20 @@ class Gate:
             await self.app(scope, receive, send)
             return
         t0 = time.perf_counter()
-        endpoint, needed = route_of(scope["method"], scope["path"])
-        status = [500]
-        started = [False]
+        method = scope["method"]
+        endpoint, needed = route_of(method, scope["path"])
+        status, started, body = [500], [False], bytearray()
 
         async def send_(message):
             if message["type"] == "http.response.start":
                 status[0], started[0] = message["status"], True
+            elif message["type"] == "http.response.body" and status[0] >= 400 and len(body) < 2048:
+                body.extend(message.get("body", b"")[:2048])
             await send(message)
 
+        place = None
         try:
-            refusal = self._check(scope, endpoint, needed)
+            refusal, place = self._check(scope, endpoint, needed)
             if refusal is not None:
                 await refusal(scope, receive, send_)
                 return
@@ -263,48 +347,78 @@ class Gate:
                     raise
                 await _error(e.status_code, e.detail)(scope, receive, send_)
         finally:
-            self.service.metrics.observe(scope["method"], endpoint, status[0], time.perf_counter() - t0)
+            if place is not None and not place.handed:
+                place.lane.release(place)
+            self.service.metrics.observe(method, endpoint, status[0], time.perf_counter() - t0)
+            if LANES.get((method, endpoint)) == "write" and started[0] and status[0] >= 400 \
+                    and status[0] not in (401, 403):  # (401 and 403 are audited as "denied", see _check)
+                key = scope.get("state", {}).get("api_key")
+                self.service.audit("refused", status=status[0], reason=_reason(bytes(body)), endpoint=endpoint,
+                                   path=scope["path"], key=key.name if key else None, client=_client(scope))
 
     def _check(self, scope, endpoint: str, needed: str | None):
+        """(an error answer or None, the request's place in its lane or None)."""
         headers = dict(scope["headers"])
+        lane = LANES.get((scope["method"], endpoint))
+        key = None
         if needed is not None:
             key = self.service.keys.authenticate(_api_key(headers))
-            writes = endpoint == f"{API}/enrol" or (endpoint.startswith(f"{API}/subjects/") and scope["method"] == "DELETE")
-            client = (scope.get("client") or ("?",))[0]
+            audited = lane == "write"
             if key is None:
-                if writes:
-                    self.service.audit("denied", reason="no valid key", endpoint=endpoint, client=client)
                 given = _api_key(headers)
+                if audited:
+                    self.service.failed_auth(_client(scope), "unknown API key" if given else "no API key",
+                                             endpoint=endpoint)
                 return _error(401, "an API key is needed (header X-API-Key or Authorization: Bearer)" if not given
-                              else "unknown API key", {"WWW-Authenticate": "Bearer"})
+                              else "unknown API key", {"WWW-Authenticate": "Bearer"}), None
             if needed != "any" and needed not in key.scopes:
-                if writes:
-                    self.service.audit("denied", key=key.name, reason=f"no {needed} scope", endpoint=endpoint,
-                                       client=client)
+                if audited:
+                    self.service.failed_auth(_client(scope), f"no {needed} scope", key=key.name, endpoint=endpoint)
                 return _error(403, f"key {key.name!r} has no {needed!r} scope (it has: "
-                                   f"{', '.join(sorted(key.scopes))})")
+                                   f"{', '.join(sorted(key.scopes))})"), None
             scope.setdefault("state", {})["api_key"] = key
         length = headers.get(b"content-length")
         if length is not None:
             try:
                 n = int(length)
             except ValueError:
-                return _error(400, "bad Content-Length header")
+                return _error(400, "bad Content-Length header"), None
             if n > self.service.settings.max_upload_bytes:
                 return _error(413, f"the upload ({n} bytes) is larger than this service's limit of "
-                                   f"{self.service.settings.max_upload_bytes} bytes")
-        return None
+                                   f"{self.service.settings.max_upload_bytes} bytes"), None
+        if lane is not None and key is not None:
+            try:
+                place = self.service.lanes[lane].admit(key.name)
+            except ApiError as e:
+                return _error(e.status, e.reason, e.headers), None
+            scope["state"]["place"] = place
+            return None, place
+        return None, None
+
+
+def _client(scope) -> str:
+    return (scope.get("client") or ("?",))[0]
+
+
+def _reason(body: bytes) -> str:
+    """The reason of a one-line JSON error answer (or its start)."""
+    try:
+        return str(json.loads(body)["error"])
+    except (ValueError, KeyError, TypeError):
+        return body[:200].decode("utf-8", "replace")
 
 
 # ---------------------------------------------------------------------------------------------- the service
 class Service:
-    """The live gallery with its keys, limits, work queue, metrics and audit log."""
+    """The live gallery with its keys, limits, work queue lanes, metrics and audit log."""
 
     def __init__(self, live: LiveGallery, keys: KeyFile, settings: ServiceSettings):
         self.live, self.keys, self.settings = live, keys, settings
-        self.queue = WorkQueue(settings.concurrency, settings.queue, settings.per_key)
+        self.lanes = {"query": Lane("query", settings.concurrency, settings.queue, settings.per_key),
+                      "write": Lane("write", settings.write_concurrency, settings.write_queue, settings.per_key)}
         self.metrics = Metrics()
         self.uploads: Counter[str] = Counter()  # scans used, by kind: "raw" (preprocessed here), "preprocessed"
+        self.failed_auth = FailedAuthLog(self.audit, settings.failed_auth_interval_s)
 
     def counted(self, answer: dict) -> dict:
         """An answer whose upload was used, counted by kind (raw scan or preprocessed face)."""
@@ -316,22 +430,25 @@ class Service:
         self.live.audit.write(action, sync=False, **fields)
 
     def close(self) -> None:
-        self.queue.close()
+        for lane in self.lanes.values():
+            lane.close()
+        self.failed_auth.close()
         self.live.close()
 
     async def run(self, request: Request, fn, *args) -> Any:
-        """fn(job, *args) through the work queue under the request's time limit."""
+        """fn(job, *args) on the request's lane (its place was taken by the `Gate`) under its time limit."""
         limit = self.settings.timeout_s
         asked = request.headers.get("x-request-timeout")
         if asked is not None:
             try:
                 limit = min(limit, float(asked))
             except ValueError:
-                raise ApiError(400, f"bad X-Request-Timeout header {asked!r} (seconds)") from None
+                raise ApiError(400, f"bad X-Request-Timeout header {asked[:40]!r} (seconds)") from None
             if not limit > 0:
                 raise ApiError(400, "X-Request-Timeout must be positive")
         job = Job(limit)
-        future = asyncio.wrap_future(self.queue.submit(request.state.api_key.name, job, fn, *args))
+        place: Place = request.state.place
+        future = asyncio.wrap_future(place.lane.submit(place, job, fn, *args))
         try:
             return await asyncio.wait_for(asyncio.shield(future), limit)
         except asyncio.TimeoutError:
@@ -345,8 +462,9 @@ class Service:
 
 
 def _label(value: str | None, what: str) -> str:
-    if value is None or not _LABEL.match(value):
-        raise ApiError(422, f"bad {what} {value!r}: 1-128 letters, digits or . _ - @ + : (no spaces or slashes)")
+    if value is None or not _LABEL.fullmatch(value):
+        raise ApiError(422, f"bad {what} {value!r}: 1-128 letters, digits or . _ - @ + : (no spaces, slashes or "
+                            "line breaks)"[:300])
     return value
 
 
@@ -359,25 +477,53 @@ def _number(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
-async def _upload(file: UploadFile, fmt: str | None, intrinsics: str | None) -> Upload:
+MAX_INTRINSICS_CHARS = 4096  # a camera's intrinsics are a few numbers
+
+
+@dataclass
+class Received:
+    """An upload as the request received it: spooled by the form parser (in memory up to 1 MiB, then in a
+    temporary file), read only when its job starts, so that requests waiting in the queue hold no copy."""
+
+    file: UploadFile
+    suffix: str
+    label: str
+    intrinsics: dict | None
+
+    def read(self) -> Upload:
+        """The upload's bytes (`Upload`); ApiError 422 when it is empty."""
+        self.file.file.seek(0)
+        data = self.file.file.read()
+        if not data:
+            raise ApiError(422, f"{self.label}: the upload is empty")
+        return Upload(data, self.suffix, self.label, self.intrinsics)
+
+
+def _intrinsics(text: str) -> dict:
+    """Camera intrinsics from the form field's JSON; ApiError 422 with the reason when they cannot be used."""
+    if len(text) > MAX_INTRINSICS_CHARS:
+        raise ApiError(422, f"the intrinsics are longer than {MAX_INTRINSICS_CHARS} characters")
+    try:
+        camera = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ApiError(422, f"the intrinsics are not JSON ({e})") from None
+    except (ValueError, RecursionError) as e:  # an integer of thousands of digits, nesting too deep
+        raise ApiError(422, f"the intrinsics are not usable JSON ({type(e).__name__})") from None
+    try:
+        Intrinsics.from_dict(camera, "intrinsics")
+    except ScanFormatError as e:
+        raise ApiError(422, str(e)) from None
+    return camera
+
+
+def _upload(file: UploadFile, fmt: str | None, intrinsics: str | None) -> Received:
     """The uploaded scan: its format from `fmt` or the file name's suffix (a label only, never a path)."""
-    name = Path((file.filename or "upload").replace("\\", "/")).name or "upload"
+    name = Path((file.filename or "upload").replace("\\", "/")).name[:128] or "upload"
     suffix = ("." + fmt.lower().lstrip(".")) if fmt else scan_suffix(name)
     if suffix not in SUPPORTED_SUFFIXES:
-        raise ApiError(415, f"{name}: unknown scan format {suffix or '(none)'!r}: name the file with one of "
+        raise ApiError(415, f"{name}: unknown scan format {suffix[:20] or '(none)'!r}: name the file with one of "
                             f"{', '.join(SUPPORTED_SUFFIXES)} or give the form field 'format'")
-    data = await file.read()
-    if not data:
-        raise ApiError(422, f"{name}: the upload is empty")
-    camera = None
-    if intrinsics:
-        try:
-            camera = json.loads(intrinsics)
-        except json.JSONDecodeError as e:
-            raise ApiError(422, f"the intrinsics are not JSON ({e})") from None
-        if not isinstance(camera, dict):
-            raise ApiError(422, "the intrinsics must be a JSON object with fx, fy, cx, cy")
-    return Upload(data, suffix, name[:128], camera)
+    return Received(file, suffix, name, _intrinsics(intrinsics) if intrinsics else None)
 
 
 def _work(job: Job, live: LiveGallery, fn, *args):
@@ -390,7 +536,9 @@ def _work(job: Job, live: LiveGallery, fn, *args):
     return result
 
 
-def _enrol(job: Job, live: LiveGallery, upload: Upload, subject: str, scan_id: str, content: str, who: dict) -> dict:
+def _enrol(job: Job, live: LiveGallery, received: Received, subject: str, scan_id: str | None, who: dict) -> dict:
+    upload = received.read()
+    content = hashlib.sha256(upload.data).hexdigest()  # the store's content hash: a scan enrolled twice is found
     source = f"upload:sha256:{content}"
     old = next((e for e in live.entries if e.source == source), None)
     if old is not None:
@@ -408,7 +556,8 @@ def _enrol(job: Job, live: LiveGallery, upload: Upload, subject: str, scan_id: s
     return {**_entry(entry), "gallery_version": live.version, "preprocessed_upload": given, "timings": timings}
 
 
-def _identify(job: Job, live: LiveGallery, upload: Upload, k: int, cascade: CascadeConfig | None) -> dict:
+def _identify(job: Job, live: LiveGallery, received: Received, k: int, cascade: CascadeConfig | None) -> dict:
+    upload = received.read()
     probe, timings, given = _work(job, live, probe_job, upload, live.max_points, live.config, live.matcher, cascade)
     t0 = time.perf_counter()
     hits, version, n = live.identify(probe, k, cascade)
@@ -419,7 +568,8 @@ def _identify(job: Job, live: LiveGallery, upload: Upload, k: int, cascade: Casc
             "gallery_version": version, "preprocessed_upload": given, "timings": timings}
 
 
-def _verify(job: Job, live: LiveGallery, upload: Upload, claim: str, threshold: float) -> dict:
+def _verify(job: Job, live: LiveGallery, received: Received, claim: str, threshold: float) -> dict:
+    upload = received.read()
     probe, timings, given = _work(job, live, probe_job, upload, live.max_points, live.config, live.matcher, None)
     t0 = time.perf_counter()
     score, version = live.verify(probe, claim)
@@ -467,8 +617,16 @@ def create_app(service: Service):
     async def _not_found(request, e):
         return _error(404, str(e))
 
+    @app.exception_handler(WorkerLost)
+    async def _worker_lost(request, e):
+        return _error(503, str(e), {"Retry-After": "2"})
+
     @app.exception_handler(FaceRec3DError)
     async def _facerec3d_error(request, e):
+        if isinstance(e, GalleryError) and str(live.path) in str(e):  # the store failed: its path stays in the log
+            print(f"error: {e}", file=sys.stderr, flush=True)
+            return _error(503, "the gallery store failed to read or write (see the service's log); retry later",
+                          {"Retry-After": "5"})
         return _error(409 if isinstance(e, GalleryError) else 422, str(e))
 
     @app.exception_handler(Exception)
@@ -490,12 +648,11 @@ def create_app(service: Service):
         (recorded in the gallery's failures to enrol), 413 / 415 outside the limits. Answered only after the
         entry is committed to the store."""
         subject = _label(subject, "subject")
-        upload = await _upload(scan, format, intrinsics)
+        upload = _upload(scan, format, intrinsics)
         scan_id = _label(scan_id, "scan_id") if scan_id is not None else \
-            (_LABEL.match(scan_stem(upload.label)) and scan_stem(upload.label)) or "upload"
-        content = hashlib.sha256(upload.data).hexdigest()  # the store's content hash: a scan enrolled twice is found
+            (_LABEL.fullmatch(scan_stem(upload.label)) and scan_stem(upload.label)) or "upload"
         return JSONResponse(service.counted(await service.run(request, _enrol, live, upload, subject, scan_id,
-                                                              content, service.who(request))), 201)
+                                                              service.who(request))), 201)
 
     @app.post(f"{API}/identify", summary="The best-matching enrolled entries for a probe (scope query)")
     async def identify(request: Request, probe: UploadFile = File(..., description=scan_doc),
@@ -512,7 +669,7 @@ def create_app(service: Service):
             config = CascadeConfig(shortlist=shortlist)
         if not live.entries:
             raise ApiError(409, "the gallery is empty")
-        upload = await _upload(probe, format, intrinsics)
+        upload = _upload(probe, format, intrinsics)
         return service.counted(await service.run(request, _identify, live, upload, k, config))
 
     @app.post(f"{API}/verify", summary="Is a probe the claimed subject? (scope query)")
@@ -529,7 +686,7 @@ def create_app(service: Service):
             raise ApiError(422, "the threshold must be a finite number")
         if not any(e.subject == claim for e in live.entries):
             raise ApiError(404, f"subject {claim!r} is not enrolled")
-        upload = await _upload(probe, format, intrinsics)
+        upload = _upload(probe, format, intrinsics)
         return service.counted(await service.run(request, _verify, live, upload, claim, threshold))
 
     @app.get(f"{API}/subjects", summary="Enrolled subjects and their entry counts (scope admin)")
@@ -560,23 +717,22 @@ def create_app(service: Service):
     @app.get(f"{API}/stats", summary="Gallery counts and settings, queue and limits (any valid key)")
     async def stats():
         st = await asyncio.to_thread(live.stats)
-        q = service.queue
-        return {**st, "queue": {"running": q.running, "waiting": q.waiting, "concurrency": q.concurrency,
-                                "capacity": q.capacity, "per_key": q.per_key},
+        return {**st, "queue": service.lanes["query"].stats(), "write_queue": service.lanes["write"].stats(),
                 "uploads": {"raw": service.uploads["raw"], "preprocessed": service.uploads["preprocessed"]},
-                "limits": {**asdict(service.settings), "max_points": live.max_points}, "degraded": live.degraded}
+                "limits": {**asdict(service.settings), "max_points": live.max_points}, "degraded": live.health()}
 
-    @app.get(f"{API}/health", summary="Liveness (no key needed)")
+    @app.get(f"{API}/health", summary="Liveness (no key needed): 'degraded' while a worker process is replaced")
     async def health():
-        return {"status": "degraded" if live.degraded else "ok", "entries": len(live.entries),
-                "gallery_version": live.version}
+        trouble = live.health()
+        return {"status": "degraded" if trouble else "ok", **({"reason": trouble} if trouble else {}),
+                "entries": len(live.entries), "gallery_version": live.version}
 
     @app.get("/metrics", response_class=PlainTextResponse, summary="Prometheus metrics (scope admin)")
     async def metrics():
-        q = service.queue
+        lanes = service.lanes.values()
         text = service.metrics.render({
-            "facerec3d_queue_length": ("Requests waiting for a worker.", q.waiting),
-            "facerec3d_requests_in_progress": ("Requests being worked on.", q.running),
+            "facerec3d_queue_length": ("Requests waiting for a worker.", sum(q.waiting for q in lanes)),
+            "facerec3d_requests_in_progress": ("Requests being worked on.", sum(q.running for q in lanes)),
             "facerec3d_gallery_entries": ("Entries in the live gallery.", len(live.entries)),
             "facerec3d_gallery_version": ("Changes applied to the live gallery since start (+1).", live.version),
             "facerec3d_cpu_seconds": ("CPU seconds used by the service and its local worker processes.",

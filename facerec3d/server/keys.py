@@ -6,7 +6,8 @@
 A key is "fr3d_" + 43 URL-safe characters (32 random bytes from `secrets`): with 256 bits of entropy a
 plain SHA-256 cannot be brute-forced, so no slow password hash is needed and checking a key costs a
 microsecond. The file is written atomically (a temporary file renamed over it) with mode 0600, and a
-running service picks up changes at the next request.
+running service picks up changes at the next request: a key removed, or the whole file deleted, no longer
+works (each reload is logged). A file that cannot be parsed (an edit half done) keeps the keys last read.
 
 File format: {"format": "facerec3d-keys-1", "keys": [{"name", "scopes": [...], "sha256", "created"}]}
 """
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import re
 import secrets
@@ -30,7 +32,8 @@ FORMAT = "facerec3d-keys-1"
 PREFIX = "fr3d_"
 #: enrol: add scans to the gallery; query: identify and verify; admin: list and remove subjects, metrics.
 SCOPES = ("enrol", "query", "admin")
-_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._@-]{0,63}$")
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._@-]{0,63}")  # (fullmatch)
+log = logging.getLogger("facerec3d.server")
 
 
 class KeyFileError(FaceRec3DError):
@@ -102,7 +105,7 @@ def _write(path: Path, records: list[dict]) -> None:
 def add_key(path: str | os.PathLike, name: str, scopes: str | list[str]) -> str:
     """Make a new key NAME with these scopes in the key file (made if missing); returns the key, which is not
     stored anywhere (only its hash)."""
-    if not _NAME.match(name):
+    if not _NAME.fullmatch(name):
         raise KeyFileError(f"bad key name {name!r}: 1-64 letters, digits, '.', '_', '@' or '-'")
     scopes = parse_scopes(scopes)
     records = read_keys(path)
@@ -148,16 +151,27 @@ class KeyFile:
             return
         with self._lock:
             records = read_keys(self.path)
-            self._keys = {k["sha256"]: ApiKey(k["name"], frozenset(k["scopes"])) for k in records}
-            self._stamp = stamp
+            keys = {k["sha256"]: ApiKey(k["name"], frozenset(k["scopes"])) for k in records}
+            if self._stamp is not None:
+                log.warning("facerec3d service: key file %s changed: %d keys (%s)", self.path, len(keys),
+                            ", ".join(sorted(k.name for k in keys.values()))[:500])
+            self._keys, self._stamp = keys, stamp
 
     def authenticate(self, key: str | None) -> ApiKey | None:
-        """The key's owner and scopes, or None for a missing or unknown key."""
+        """The key's owner and scopes, or None for a missing or unknown key (every key, once the file is gone)."""
         if not key:
             return None
         try:
             self._load()
-        except (KeyFileError, OSError):  # a broken edit of the file: keep the keys last read
+        except KeyFileError:
+            if not self.path.exists():  # deleted: every key is revoked
+                with self._lock:
+                    if self._keys:
+                        log.warning("facerec3d service: key file %s removed: all %d keys revoked", self.path,
+                                    len(self._keys))
+                    self._keys, self._stamp = {}, None
+            # else a broken edit of the file: keep the keys last read
+        except OSError:
             pass
         # a lookup by hash: its timing depends on the hash of the guess, which tells nothing about a real key
         return self._keys.get(key_hash(key))

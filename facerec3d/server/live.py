@@ -23,10 +23,12 @@ from __future__ import annotations
 import json
 import os
 import re
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -58,6 +60,17 @@ class NotFound(FaceRec3DError):
     """No such subject or scan in the gallery."""
 
 
+class WorkerLost(FaceRec3DError):
+    """A worker process died while the request needed it (it is being replaced): the request may be retried."""
+
+    def __init__(self):
+        super().__init__("a worker process of the service stopped; it is being replaced: retry in a few seconds")
+
+
+def _stopped(dead: list[int]) -> str:
+    return f"worker process {', '.join(map(str, dead))} stopped; it is being replaced"
+
+
 @dataclass(eq=False)
 class Snapshot:
     """One version of the gallery: its shards in the workers and its entries in the same order."""
@@ -77,7 +90,8 @@ class AuditLog:
         self._lock = threading.Lock()
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file = open(self.path, "a", encoding="utf-8")
+            fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)  # who did what: for the owner
+            self._file = open(fd, "a", encoding="utf-8")
 
     def write(self, action: str, sync: bool = True, **fields: Any) -> None:
         """Append a record; `sync=False` (refused requests) skips the fsync, so that they cannot cost one each."""
@@ -111,7 +125,9 @@ class LiveGallery:
         self.engine = Engine.create(jobs, scheduler)
         self._lock = threading.Lock()
         self._busy = [0] * self.engine.workers  # jobs in flight per executor (work goes to the least busy)
-        self.degraded: str | None = None
+        self.degraded: str | None = None  # a lasting note (an in-memory update failed and the store was reloaded)
+        self.restarting: str | None = None  # while dead worker processes are replaced
+        self.restarts = 0  # worker replacements so far
         try:
             self.engine.map(ready, range(self.engine.workers))  # start the workers before any thread exists
             self._writer = ThreadPoolExecutor(1, thread_name_prefix="facerec3d-store")
@@ -120,10 +136,48 @@ class LiveGallery:
         except BaseException:
             self.engine.close()
             raise
+        self._stop = threading.Event()
+        self._watchdog = threading.Thread(target=self._watch, name="facerec3d-watchdog", daemon=True)
+        self._watchdog.start()
+
+    # ------------------------------------------------------------------ dead workers (watchdog thread)
+    WATCH_S = 0.5  # how often the worker processes are looked at
+
+    def health(self) -> str | None:
+        """Why the service is degraded (a worker process died and is being replaced, or a lasting note), or None."""
+        dead = self.engine.broken()
+        return _stopped(dead) if dead else self.restarting or self.degraded
+
+    def _watch(self) -> None:
+        """Replace dead worker processes (killed, out of memory) and reload the gallery into them."""
+        while not self._stop.wait(self.WATCH_S):
+            dead = self.engine.broken()
+            if not dead and not self.restarting:  # (a failed replacement is tried again)
+                continue
+            self.restarting = _stopped(dead) if dead else self.restarting
+            print(f"facerec3d service: {self.restarting}", file=sys.stderr, flush=True)
+            try:
+                self._writer.submit(self._recover).result()
+            except Exception as e:  # noqa: BLE001 - tried again at the next look
+                print(f"facerec3d service: replacing worker processes failed ({type(e).__name__}: {e}); retrying",
+                      file=sys.stderr, flush=True)
+                continue
+            self.restarting = None
+
+    def _recover(self) -> None:
+        """(writer thread, so that no change is under way) New processes for the dead ones, the gallery reloaded."""
+        dead = self.engine.broken()
+        self.restarts += 1
+        for i in dead:
+            self.engine.replace(i)
+        self._reload()
+        print(f"facerec3d service: worker process {', '.join(map(str, dead))} replaced, the gallery reloaded "
+              f"({len(self._snap.entries)} entries)", file=sys.stderr, flush=True)
 
     # ------------------------------------------------------------------ set-up (writer thread)
     def _open(self, method: str | None, options: dict | None, config: PreprocessConfig | None) -> None:
         self._store = store = GalleryStore(self.path, create=True)
+        store.check_writable()  # the service writes every enrolment: refuse a read-only gallery now, not then
         # every commit synced to disk (SQLite's usual default, made sure of): an acknowledged enrolment survives
         # a power cut too, not only a killed process
         store._db.execute("PRAGMA synchronous = FULL")
@@ -154,6 +208,8 @@ class LiveGallery:
 
     def close(self) -> None:
         """Release the gallery, stop the workers and close the store."""
+        self._stop.set()
+        self._watchdog.join()
         self._janitor.shutdown(wait=True)
         self._writer.submit(self._store.close).result()
         self._writer.shutdown(wait=True)
@@ -163,11 +219,17 @@ class LiveGallery:
     # ------------------------------------------------------------------ running work
     def work(self, fn: Callable, *args: Any) -> Any:
         """fn(*args) on the least busy worker (blocks; call from a request thread)."""
+        dead = set(self.engine.broken())
         with self._lock:
-            i = int(np.argmin(self._busy))
+            i = min((b, i) for i, b in enumerate(self._busy) if i not in dead)[1] if len(dead) < len(self._busy) \
+                else None
+            if i is None:
+                raise WorkerLost()
             self._busy[i] += 1
         try:
             return self.engine.executors[i].submit(fn, *args).result()
+        except BrokenProcessPool:
+            raise WorkerLost() from None
         finally:
             with self._lock:
                 self._busy[i] -= 1
@@ -178,8 +240,15 @@ class LiveGallery:
         with self._lock:
             snap = self._snap
             snap.users += 1
+            restarts = self.restarts
         try:
             yield snap
+        except BrokenProcessPool:
+            raise WorkerLost() from None
+        except RuntimeError:  # a shard missing from a worker put in the place of a dead one
+            if snap.retired or self.restarting or self.restarts != restarts or self.engine.broken():
+                raise WorkerLost() from None
+            raise
         finally:
             with self._lock:
                 snap.users -= 1
