@@ -16,7 +16,7 @@ from facerec3d.preprocess.orient import orient
 from facerec3d.preprocess.resample import point_spacing
 from facerec3d.scan import FaceScan
 
-SUBJECTS = 6
+SUBJECTS = 4
 
 
 def _scans():
