@@ -75,6 +75,21 @@ class Dataset:
     def subjects(self) -> list[str]:
         return sorted({r.subject for r in self.records})
 
+    @property
+    def root(self) -> Path:
+        """The folder scan paths are given relative to: the dataset folder, or a manifest's folder."""
+        return self.source.parent if self.source.is_file() else self.source
+
+    def label(self, record: ScanRecord) -> str:
+        """The scan's label in score files and reports: its path relative to `root` (`/`-separated; absolute
+        when outside it), unique where file stems are not (`s000/front_1.png` and `s001/front_1.png`), with
+        white space percent-encoded so that it stays one field of a score file."""
+        try:
+            rel = record.path.relative_to(self.root).as_posix()
+        except ValueError:
+            rel = record.path.as_posix()
+        return re.sub(r"[\s%]", lambda m: f"%{ord(m[0]):02X}", rel)
+
 
 def open_dataset(source: str | Path) -> Dataset:
     """The dataset at `source`: a manifest CSV, or a folder in FRGC or Bosphorus layout (auto-detected).

@@ -88,7 +88,7 @@ def compare_runs(run_dirs: Sequence[str | Path], out_dir: str | Path) -> dict:
     for d in map(Path, run_dirs):
         metrics, curves = _load(d)
         method = metrics.get("method")
-        runs.append({"label": f"{method} ({d.name})" if method else d.name, "dir": str(d), "metrics": metrics,
+        runs.append({"label": f"{method} ({d.name})" if method and method != d.name else d.name, "dir": str(d), "metrics": metrics,
                      "curves": curves, "hits": rank1_hits(d)})
     labels = [r["label"] for r in runs]
     for i, r in enumerate(runs):  # keep labels unique so no curve hides another

@@ -359,8 +359,12 @@ def _number(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
-async def _upload(file: UploadFile, fmt: str | None, intrinsics: str | None) -> Upload:
-    """The uploaded scan: its format from `fmt` or the file name's suffix (a label only, never a path)."""
+MAX_INTRINSICS_BYTES = 64 * 1024  # an intrinsics.json is a few hundred bytes
+
+
+async def _upload(file: UploadFile, fmt: str | None, intrinsics: str | UploadFile | None) -> Upload:
+    """The uploaded scan: its format from `fmt` or the file name's suffix (a label only, never a path); the
+    intrinsics as a text field or a file part (`curl -F intrinsics=@intrinsics.json`)."""
     name = Path((file.filename or "upload").replace("\\", "/")).name or "upload"
     suffix = ("." + fmt.lower().lstrip(".")) if fmt else scan_suffix(name)
     if suffix not in SUPPORTED_SUFFIXES:
@@ -370,6 +374,11 @@ async def _upload(file: UploadFile, fmt: str | None, intrinsics: str | None) -> 
     if not data:
         raise ApiError(422, f"{name}: the upload is empty")
     camera = None
+    if intrinsics is not None and not isinstance(intrinsics, str):  # a file part
+        raw = await intrinsics.read(MAX_INTRINSICS_BYTES + 1)
+        if len(raw) > MAX_INTRINSICS_BYTES:
+            raise ApiError(413, f"the intrinsics are over {MAX_INTRINSICS_BYTES // 1024} KiB")
+        intrinsics = raw.decode("utf-8", errors="replace")
     if intrinsics:
         try:
             camera = json.loads(intrinsics)
@@ -485,7 +494,8 @@ def create_app(service: Service):
                     subject: str = Form(..., description="Subject id"),
                     scan_id: str | None = Form(None, description="Scan id (default: the file name's stem)"),
                     format: str | None = Form(None, description="Format suffix when the file name has none, e.g. abs.gz"),
-                    intrinsics: str | None = Form(None, description="Depth frames: camera intrinsics JSON")):
+                    intrinsics: str | UploadFile | None = Form(None, description="Depth frames: camera "
+                                                               "intrinsics JSON, as text or a file")):
         """The new entry (201), or: 409 already enrolled (the same bytes), 422 a failure to enrol with its reason
         (recorded in the gallery's failures to enrol), 413 / 415 outside the limits. Answered only after the
         entry is committed to the store."""
@@ -502,7 +512,7 @@ def create_app(service: Service):
                        k: int = Form(5, ge=1, le=1000, description="Candidates to list"),
                        cascade: bool = Form(False, description="ICP: depth screen, then full ICP on a shortlist"),
                        shortlist: int = Form(20, ge=1, le=100000, description="Cascade shortlist length"),
-                       format: str | None = Form(None), intrinsics: str | None = Form(None)):
+                       format: str | None = Form(None), intrinsics: str | UploadFile | None = Form(None)):
         """Candidates best first (rank, entry, subject, scan_id, score: higher is more similar). Under the
         cascade, faces off the shortlist are not listed."""
         config = None
@@ -519,7 +529,7 @@ def create_app(service: Service):
     async def verify(request: Request, probe: UploadFile = File(..., description=scan_doc),
                      claim: str = Form(..., description="Claimed subject id"),
                      threshold: float | None = Form(None, description="Accept scores >= this (default: the method's)"),
-                     format: str | None = Form(None), intrinsics: str | None = Form(None)):
+                     format: str | None = Form(None), intrinsics: str | UploadFile | None = Form(None)):
         """The decision, the score and the threshold used; 404 when the claimed subject is not enrolled."""
         try:
             threshold = live.threshold(threshold)
