@@ -105,7 +105,8 @@ def test_a_run_folder_is_not_overwritten_without_overwrite(run, frames, tmp_path
 
 def test_bosphorus_protocol_on_a_dataset_without_bosphorus_types_is_refused(frames, tmp_path):
     """Item 6."""
-    r = CliRunner().invoke(main, ["evaluate", str(frames), "--protocol", "bosphorus", "--out", str(tmp_path / "b")])
+    r = CliRunner().invoke(main, ["evaluate", str(frames), "--protocol", "bosphorus", "--out", str(tmp_path / "b"),
+                                  "--cache", str(tmp_path / "cache"), "--jobs", "1"])
     assert r.exit_code == 2, r.output
     assert f"error: {frames / 'manifest.csv'}: the bosphorus protocol needs Bosphorus scan types" in r.output
     assert not (tmp_path / "b").exists()  # refused before any work
