@@ -223,9 +223,9 @@ def _cache_folder(cache: str | None) -> "str | Path":
     if cache:
         return cache
     if not batch.DEFAULT_CACHE.is_dir():
-        click.echo(f"preprocessing cache: {batch.DEFAULT_CACHE} (made now, reused by later commands; see "
-                   "`facerec3d cache info`, empty it with `facerec3d cache clear`, choose another with --cache DIR)",
-                   err=True)
+        click.echo(f"preprocessing cache: {batch.DEFAULT_CACHE} (first use: faces preprocessed from now on are kept "
+                   "there and reused; `facerec3d cache info` shows it, `facerec3d cache clear` empties it, --cache DIR "
+                   "chooses another)", err=True)
     return batch.DEFAULT_CACHE
 
 
@@ -415,17 +415,15 @@ def evaluate(data, method, method_config, train, model, out, overwrite, protocol
              cascade, shortlist, screen, bootstrap, seed, jobs, scheduler):
     """Evaluate a method on DATA (FRGC or Bosphorus folder, or manifest CSV): metrics, scores, plots, report."""
     from facerec3d.config import read_settings
-    from facerec3d.evaluation.report import claim_run_folder
     from facerec3d.evaluation.run import evaluate as run
     from facerec3d.preprocess import PreprocessConfig
 
-    claim_run_folder(out, overwrite, keep=[model])  # before any work: refuse an earlier run's folder
     config = PreprocessConfig.load(config_file) if config_file else PreprocessConfig()
     options = read_settings(method_config) if method_config else None
     m = run(data, method, out, protocol=protocol, jobs=jobs, scheduler=scheduler, cache=_cache_folder(cache),
             config=config, options=options, train=train, model=model,
             cascade=_cascade_config(cascade, shortlist, screen), intrinsics=intrinsics, bootstrap=bootstrap, seed=seed,
-            overwrite=True)
+            overwrite=overwrite)  # an earlier run in --out is refused before any work
     _print_metrics(m)
     click.echo(f"report: {Path(out) / 'report.html'}")
 

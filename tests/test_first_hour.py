@@ -129,7 +129,7 @@ def test_the_cache_says_where_it_is_and_can_be_listed_and_cleared(frames, tmp_pa
             "--subject", "04200", "--jobs", "1"]
     r = CliRunner().invoke(main, args)
     assert r.exit_code == 0, r.output
-    assert f"preprocessing cache: {tmp_path / 'user-cache'} (made now" in r.output  # stderr, mixed in
+    assert f"preprocessing cache: {tmp_path / 'user-cache'} (first use" in r.output  # stderr, mixed in
     r = CliRunner().invoke(main, ["cache", "info"])
     assert r.exit_code == 0 and re.match(rf"{re.escape(str(tmp_path / 'user-cache'))}: 1 faces, 0 failures, "
                                          r"[\d.]+ MiB", r.output), r.output

@@ -20,7 +20,9 @@
 - `bosphorus`: the first neutral scan of each subject is the gallery; the
   other scans are probes, reported by subset: neutral (N), non-neutral (E,
   LFAU, UFAU, CAU), each of E, LFAU, UFAU, CAU, each emotion (E_HAPPY, ...),
-  pose (YR, PR, CR), each of YR, PR, CR, and occlusion (O).
+  pose (YR, PR, CR), each of YR, PR, CR, and occlusion (O). A dataset none
+  of whose scans has a Bosphorus type (a bsNNN_TYPE_SUB_k.bnt name, or a
+  manifest label such as E_HAPPY) is refused: its gallery would be nonsense.
 - `roles`: a manifest's `role` column says gallery or probe.
 - `all-vs-all`: every scan is in the gallery and is a probe; a scan is never
   compared with itself.

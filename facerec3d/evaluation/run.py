@@ -61,9 +61,9 @@ def evaluate(data: str | Path, method: str = "icp", out: str | Path = "run", *, 
 
     A folder `out` that holds an earlier run is refused unless `overwrite` (the command line's --overwrite; here
     the default), and then that run's files are removed first (`report.RUN_FILES`), so none is left over."""
-    claim_run_folder(out, overwrite, keep=[model])
     dataset = open_dataset(data)
     sp = split(dataset, protocol)  # a dataset the protocol does not suit is refused before any work
+    claim_run_folder(out, overwrite, keep=[model])
     with Engine.create(jobs, scheduler) as engine:
         matcher, training = trained_matcher(method, options, train=train, model=model, workers=engine, cache=cache,
                                             config=config, progress=progress)
