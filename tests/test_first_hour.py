@@ -267,3 +267,20 @@ def test_the_service_takes_intrinsics_as_a_file_part_or_text(frames, tmp_path):
         assert r.status_code == 422 and "not JSON" in r.json()["error"]
     finally:
         service.close()
+
+
+def test_a_manifest_of_bosphorus_files_is_read_as_the_bosphorus_folder_would_be(tmp_path):
+    """The protocol and subsets of synthetic Bosphorus data do not depend on its manifest.csv being there."""
+    from facerec3d.datasets.catalog import open_dataset
+    from facerec3d.datasets.protocols import split
+    from facerec3d.datasets.synthetic import ScannerConfig
+
+    write_dataset(tmp_path, DatasetConfig(subjects=2, scans=4, seed=1, scanner=ScannerConfig(rows=120, cols=160,
+                                                                                             focal_px=360.0)), "bnt")
+    through_manifest = split(open_dataset(tmp_path))
+    (tmp_path / "manifest.csv").unlink()
+    folder = split(open_dataset(tmp_path))
+    assert through_manifest.protocol == folder.protocol == "bosphorus"
+    assert {k: len(v) for k, v in through_manifest.subsets.items() if not k.startswith("pose:")} == \
+        {k: len(v) for k, v in folder.subsets.items()}
+    assert len(through_manifest.subsets) > 3  # neutral, non-neutral and the Bosphorus types

@@ -163,6 +163,9 @@ def read_manifest(path: str | Path) -> Dataset:
         if role not in (None, "gallery", "probe"):
             raise DatasetError(f"{path}, line {line}: role must be gallery or probe, not {role!r}")
         kind = None if expression is None else ("neutral" if expression == "neutral" else "expression")
+        if BOSPHORUS_PATTERN.match(p.name) and (label or "").split("_")[0].upper() not in BOSPHORUS_KINDS:
+            named = _bosphorus_record(p)  # a Bosphorus file: its type and label from its name, as in its folder
+            kind, label, expression = named.kind, named.label, expression or named.expression
         session = (row.get("session") or "").strip() or _frgc_session(p)
         records.append(ScanRecord(p, row["subject"].strip(), scan_stem(p), expression, kind, label,
                                   session, role, (row.get("pose") or "").strip() or None))

@@ -65,11 +65,13 @@ class Split:
 
 
 def default_protocol(dataset: Dataset) -> str:
-    """Bosphorus for a Bosphorus folder, roles for a manifest with a role column, FRGC otherwise."""
-    if dataset.layout == "bosphorus":
-        return "bosphorus"
+    """Roles for a manifest with a role column; Bosphorus for a Bosphorus folder (or a manifest of Bosphorus
+    files); FRGC otherwise."""
     if any(r.role for r in dataset.records):
         return "roles"
+    if dataset.layout == "bosphorus" or dataset.records and all(BOSPHORUS_PATTERN.match(r.path.name)
+                                                                for r in dataset.records):
+        return "bosphorus"
     return "frgc"
 
 
