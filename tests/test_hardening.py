@@ -128,7 +128,7 @@ def test_no_small_file_makes_a_command_exceed_1_gib(tmp_path):
     assert peak < GiB_KB, f"info: {peak / 1024:.0f} MiB"
     assert code == 2 and "Traceback" not in err and "2000x2000 grid, 4000000 valid points" in out, err
     for f, reason in zip(files[:-1], expected.values()):  # far.ply is a readable point cloud
-        assert any(line.startswith(f"{f}: error:") and reason in line for line in err.splitlines()), (f, err)
+        assert any(line.startswith(f"error: {f}: ") and reason in line for line in err.splitlines()), (f, err)
     peak, code, out, err = peak_rss_kb(tmp_path, "preprocess", *files, biggest, "-o", tmp_path / "out", "--jobs", "1")
     assert peak < GiB_KB, f"preprocess: {peak / 1024:.0f} MiB"
     assert code == 1 and "Traceback" not in err and f"0 kept, {len(files) + 1} failed" in out, err
