@@ -343,12 +343,11 @@ def run_method(method: str, data: Path, gallery_rows: list, probe_rows: list, ou
     matrix rebuilt from scores.txt.
 
     Rows of scores.txt are paired with the manifest's probes by (real_id, probe_label), label = the
-    scan id (file stem, not unique across subjects), columns by claimed_id = gallery subject. A probe
+    frame's path within the dataset (as the manifest gives it), columns by claimed_id = gallery subject. A probe
     with no row failed to acquire, a gallery subject never claimed failed to enrol."""
     from facerec3d.evaluation.run import evaluate
     from facerec3d.evaluation.scorefile import read_score_rows
     from facerec3d.preprocess import PreprocessConfig
-    from facerec3d.io import scan_stem
 
     warm = numba_cache_warm()
     t0 = time.perf_counter()
@@ -357,7 +356,7 @@ def run_method(method: str, data: Path, gallery_rows: list, probe_rows: list, ou
                        cache=cache, options=options, train=train, config=config or PreprocessConfig())
     wall_s = time.perf_counter() - t0
     rows = read_score_rows(out / label / "scores.txt")
-    probe_at = {(r["subject"], scan_stem(r["path"])): i for i, r in enumerate(probe_rows)}
+    probe_at = {(r["subject"], Path(r["path"]).as_posix()): i for i, r in enumerate(probe_rows)}
     gallery_at = {r["subject"]: j for j, r in enumerate(gallery_rows)}
     if len(gallery_at) != len(gallery_rows):
         raise ValueError("the manifest has several gallery frames for one subject; scores.txt cannot tell them apart")

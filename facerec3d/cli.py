@@ -16,12 +16,14 @@ from facerec3d.errors import FaceRec3DError
 
 def friendly(fn):
     """Turn facerec3d's own errors (bad input, settings, stores; and the file system's, which name the file) into
-    one line and exit code 2. Anything else is a bug, and shows its traceback."""
+    one line, `error: FILE: reason`, and exit code 2. Anything else is a bug, and shows its traceback."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
             return fn(*args, **kwargs)
+        except BrokenPipeError:  # the reader went away (`| head`): not an error of this command
+            raise
         except (FaceRec3DError, OSError) as e:
             click.echo(f"error: {e}", err=True)
             sys.exit(2)
@@ -29,7 +31,29 @@ def friendly(fn):
     return wrapper
 
 
-@click.group()
+#: Exit codes of a Unix tool stopped by a signal: 128 + SIGINT (Ctrl-C), 128 + SIGPIPE (its reader went away).
+EXIT_INTERRUPTED, EXIT_BROKEN_PIPE = 130, 141
+
+
+class _Main(click.Group):
+    """The command group, ending as a Unix tool does: Ctrl-C exits 130 with one line, and output into a closed pipe
+    (`facerec3d gallery g.sqlite list | head -1`) ends quietly with 141."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt:
+            click.echo("interrupted", err=True)
+            raise click.exceptions.Exit(EXIT_INTERRUPTED) from None
+        except BrokenPipeError:
+            try:  # nothing more reaches the reader; send what is still buffered nowhere, quietly
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            except (OSError, ValueError):  # no real stdout (e.g. under a test runner)
+                pass
+            raise click.exceptions.Exit(EXIT_BROKEN_PIPE) from None
+
+
+@click.group(cls=_Main)
 @click.version_option(package_name="facerec3d")
 def main():
     """3D face recognition (Mian & Pears, '3D Face Recognition', 2012): scans, preprocessing, matching, evaluation."""
@@ -46,8 +70,8 @@ def info(files):
     for f in files:
         try:
             s = load_scan(f)
-        except FaceRec3DError as e:
-            click.echo(f"{f}: error: {e.reason if hasattr(e, 'reason') else e}", err=True)
+        except FaceRec3DError as e:  # the next file is still looked at
+            click.echo(f"error: {e}", err=True)
             failed += 1
             continue
         lo, hi = s.bounding_box()
@@ -75,8 +99,9 @@ def convert(src, dst):
 @click.argument("out", type=click.Path(file_okay=False))
 @click.option("--subjects", default=20, show_default=True, help="Number of subjects.")
 @click.option("--scans", default=4, show_default=True, help="Scans per subject (the first is neutral and frontal).")
-@click.option("--format", "fmt", type=click.Choice(["abs", "bnt"]), default="abs", show_default=True,
-              help="FRGC (.abs.gz in nd1/<session>/) or Bosphorus (.bnt) layout.")
+@click.option("--format", "fmt", type=click.Choice(["abs", "bnt", "png"]), default="abs", show_default=True,
+              help="FRGC (.abs.gz in nd1/<session>/) or Bosphorus (.bnt) layout, or a depth camera's 16-bit frames "
+                   "(<subject>/front_1.png, ... with intrinsics.json).")
 @click.option("--seed", default=0, show_default=True)
 @click.option("--first-subject", default=0, show_default=True,
               help="Number of the first subject: a training set disjoint from the default test set starts at, "
@@ -152,8 +177,9 @@ LANDMARK_COLUMNS = ("nose_tip", "nose_bridge", "left_eye_inner", "right_eye_inne
               help="Depth frames: pinhole intrinsics JSON (fx, fy, cx, cy); default: an intrinsics.json beside them.")
 @friendly
 def preprocess(inputs, outdir, config_file, fmt, jobs, intrinsics):
-    """Preprocess scans INPUTS into normalised faces in OUT, with OUT/landmarks.csv (chapter §8.5); inputs of the
-    same name get distinct outputs (face, face-2, ...). Exit code 1 when no scan could be used."""
+    """Preprocess scans INPUTS into normalised faces in OUT, with OUT/landmarks.csv (chapter §8.5). Outputs are
+    named after the inputs; when files of several folders share a name, after folder and file (s000/front_1.png
+    gives s000_front_1.npz). Exit code 1 when no scan could be used."""
     from tqdm import tqdm
 
     from facerec3d.io import save_scan, unique_stems
@@ -188,6 +214,25 @@ def preprocess(inputs, outdir, config_file, fmt, jobs, intrinsics):
     click.echo(f"{len(inputs) - failed} kept, {failed} failed; landmarks and quality in {out / 'landmarks.csv'}")
     if failed == len(inputs):
         sys.exit(1)
+
+
+def _cache_folder(cache: str | None) -> "str | Path":
+    """--cache, or else the default preprocessing cache, whose place is said (one line on stderr) when a command
+    first makes it."""
+    from facerec3d.preprocess import batch
+
+    if cache:
+        return cache
+    if not batch.DEFAULT_CACHE.is_dir():
+        click.echo(f"preprocessing cache: {batch.DEFAULT_CACHE} (first use: faces preprocessed from now on are kept "
+                   "there and reused; `facerec3d cache info` shows it, `facerec3d cache clear` empties it, --cache DIR "
+                   "chooses another)", err=True)
+    return batch.DEFAULT_CACHE
+
+
+_CACHE_OPTION = click.option("--cache", type=click.Path(file_okay=False),
+                             help="Preprocessing cache folder [default: the user's cache folder, see facerec3d cache "
+                                  "info].")
 
 
 def _engine_options(fn):
@@ -333,6 +378,10 @@ def _print_metrics(m: dict) -> None:
         click.echo(f"failed ({f['role']}): {f['path']}: {f['reason']}")
 
 
+_OVERWRITE_OPTION = click.option("--overwrite", is_flag=True, help="Replace the run already in --out (its files "
+                                 "are removed first); without it such a folder is refused.")
+
+
 def _bootstrap_options(fn):
     """--bootstrap and --seed: the 95 % intervals of every figure."""
     fn = click.option("--seed", default=0, show_default=True, help="Seed of the bootstrap draws.")(fn)
@@ -351,30 +400,31 @@ def _bootstrap_options(fn):
 @click.option("--model", type=click.Path(exists=True, dir_okay=False),
               help="Saved model (a run's model.npz) instead of --method/--train.")
 @click.option("--out", "out", required=True, type=click.Path(file_okay=False), help="Run folder to write.")
+@_OVERWRITE_OPTION
 @click.option("--protocol", type=click.Choice(["frgc", "frgc-exp3", "bosphorus", "roles", "all-vs-all"]),
               help="Default: from the dataset (Bosphorus folder, manifest roles, else FRGC). frgc-exp3: FRGC v2 "
                    "Experiment 3, all against all over Fall 2003 + Spring 2004, under the ROC I / II / III masks.")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False), help="TOML or JSON preprocessing settings.")
-@click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
+@_CACHE_OPTION
 @click.option("--intrinsics", type=click.Path(exists=True, dir_okay=False), default=None,
               help="Depth frames: pinhole intrinsics JSON (fx, fy, cx, cy); default: an intrinsics.json beside them.")
 @functools.partial(_cascade_options, screens=True)
 @_bootstrap_options
 @_engine_options
 @friendly
-def evaluate(data, method, method_config, train, model, out, protocol, config_file, cache, intrinsics, cascade,
-             shortlist, screen, bootstrap, seed, jobs, scheduler):
+def evaluate(data, method, method_config, train, model, out, overwrite, protocol, config_file, cache, intrinsics,
+             cascade, shortlist, screen, bootstrap, seed, jobs, scheduler):
     """Evaluate a method on DATA (FRGC or Bosphorus folder, or manifest CSV): metrics, scores, plots, report."""
     from facerec3d.config import read_settings
     from facerec3d.evaluation.run import evaluate as run
     from facerec3d.preprocess import PreprocessConfig
-    from facerec3d.preprocess.batch import DEFAULT_CACHE
 
     config = PreprocessConfig.load(config_file) if config_file else PreprocessConfig()
     options = read_settings(method_config) if method_config else None
-    m = run(data, method, out, protocol=protocol, jobs=jobs, scheduler=scheduler, cache=cache or DEFAULT_CACHE,
+    m = run(data, method, out, protocol=protocol, jobs=jobs, scheduler=scheduler, cache=_cache_folder(cache),
             config=config, options=options, train=train, model=model,
-            cascade=_cascade_config(cascade, shortlist, screen), intrinsics=intrinsics, bootstrap=bootstrap, seed=seed)
+            cascade=_cascade_config(cascade, shortlist, screen), intrinsics=intrinsics, bootstrap=bootstrap, seed=seed,
+            overwrite=overwrite)  # an earlier run in --out is refused before any work
     _print_metrics(m)
     click.echo(f"report: {Path(out) / 'report.html'}")
 
@@ -390,7 +440,7 @@ def evaluate(data, method, method_config, train, model, out, protocol, config_fi
 @click.option("--config", "config_file", type=click.Path(dir_okay=False), help="TOML or JSON preprocessing settings.")
 @click.option("--subject", help="Subject of scan files whose names do not say it (default: the file stem).")
 @click.option("--gallery-only", is_flag=True, help="Of a dataset, enrol only its protocol's gallery scans.")
-@click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
+@_CACHE_OPTION
 @click.option("--calibrate/--no-calibrate", default=True, show_default=True,
               help="After enrolling, calibrate the gallery's verification threshold on its own scans (FMR 1 %; "
                    "see 'gallery STORE calibrate').")
@@ -417,11 +467,10 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
     from facerec3d.gallery.store import GalleryStore
     from facerec3d.matching.registry import trained_matcher
     from facerec3d.preprocess import PreprocessConfig
-    from facerec3d.preprocess.batch import DEFAULT_CACHE
 
     config = PreprocessConfig.load(config_file) if config_file else PreprocessConfig()
     options = read_settings(method_config) if method_config else None
-    cache = cache or DEFAULT_CACHE
+    cache = _cache_folder(cache)
     records = scan_records(data, subject, gallery_only)
     with Engine.create(jobs, scheduler) as engine:
         matcher, _ = trained_matcher(method, options, train=train, model=model, workers=engine, cache=cache,
@@ -449,7 +498,7 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
 @click.option("-k", "k", default=5, show_default=True, help="Number of candidates to list.")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False),
               help="Preprocessing settings; must be the gallery's (default: the gallery's).")
-@click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
+@_CACHE_OPTION
 @_cascade_options
 @_engine_options
 @_server_options
@@ -470,12 +519,11 @@ def identify(probe, gallery, k, config_file, cache, cascade, shortlist, jobs, sc
     from facerec3d.gallery.service import identify_scan
     from facerec3d.gallery.store import GalleryStore
     from facerec3d.preprocess import PreprocessConfig
-    from facerec3d.preprocess.batch import DEFAULT_CACHE
 
     config = PreprocessConfig.load(config_file) if config_file else None
     with _one_blas_thread(), GalleryStore(gallery) as store, Engine.create(jobs, scheduler) as engine:
         hits = identify_scan(store, probe, k=k, cascade=_cascade_config(cascade, shortlist), config=config,
-                             engine=engine, cache=cache or DEFAULT_CACHE)
+                             engine=engine, cache=_cache_folder(cache))
     click.echo(f"{'rank':>4}  {'subject':<12}{'scan':<20}{'score':>12}")
     for r, (entry, score) in enumerate(hits, start=1):
         click.echo(f"{r:>4}  {str(entry.subject):<12}{str(entry.scan_id):<20}{score:>12.4f}")
@@ -489,7 +537,7 @@ def identify(probe, gallery, k, config_file, cache, cascade, shortlist, jobs, sc
               "see 'gallery STORE calibrate'; else for icp -1.0 mm², the EER point of synthetic laser scans).")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False),
               help="Preprocessing settings; must be the gallery's (default: the gallery's).")
-@click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
+@_CACHE_OPTION
 @_server_options
 @_edge_option
 @friendly
@@ -506,14 +554,36 @@ def verify(probe, gallery, claim, threshold, config_file, cache, server, api_key
     from facerec3d.gallery.service import verify_scan
     from facerec3d.gallery.store import GalleryStore
     from facerec3d.preprocess import PreprocessConfig
-    from facerec3d.preprocess.batch import DEFAULT_CACHE
 
     config = PreprocessConfig.load(config_file) if config_file else None
+    given = threshold is not None
     with _one_blas_thread(), GalleryStore(gallery) as store:
         accepted, score, threshold = verify_scan(store, probe, claim, threshold=threshold, config=config,
-                                                 cache=cache or DEFAULT_CACHE)
+                                                 cache=_cache_folder(cache))
+        hint = None if given else _threshold_hint(store, claim, threshold)
     click.echo(f"{'accept' if accepted else 'reject'}: claim {claim}, score {score:.4f} (threshold {threshold:g})")
+    if hint:
+        click.echo(hint, err=True)
     sys.exit(0 if accepted else 1)
+
+
+#: The sampling (mm) of the scans the default verification thresholds were chosen on: FRGC-like laser scans,
+#: whose faces ICP matches at their 1 mm grid. A gallery matched at a coarser resolution (a depth camera's)
+#: scores its genuine comparisons lower, and the default threshold then rejects most of them.
+DEFAULT_THRESHOLD_RESOLUTION_MM = 1.5
+
+
+def _threshold_hint(store, claim: str, threshold: float) -> str | None:
+    """A hint when the default threshold does not suit the claimed subject's templates: ICP templates record the
+    resolution they are matched at (`resolution`, mm), coarser than the laser scans the default was chosen on."""
+    resolutions = [t.attrs.get("resolution") for t in store.templates(store.entries(subject=claim))]
+    resolutions = [float(r) for r in resolutions if isinstance(r, (int, float))]
+    if not resolutions or max(resolutions) <= DEFAULT_THRESHOLD_RESOLUTION_MM:
+        return None
+    return (f"hint: the default threshold {threshold:g} was chosen on laser scans matched at 1 mm; this gallery's faces "
+            f"are matched at {max(resolutions):.1f} mm (a depth camera's), where genuine scores are lower: choose "
+            "--threshold from an evaluation on this sensor's scans (metrics.json: threshold_at_eer, "
+            "threshold_at_far_0.001; see the depth-camera quick start in the docs)")
 
 
 class _GalleryGroup(click.Group):
@@ -612,7 +682,7 @@ def _calibrate_threshold(store, records, fmr, engine, cache, quiet_if_impossible
 @click.option("--eer", is_flag=True, help="Threshold at the equal error rate instead (needs two scans of some "
               "subjects).")
 @click.option("--subject", help="Subject of scan files whose names do not say it.")
-@click.option("--cache", type=click.Path(file_okay=False), help="Preprocessing cache folder.")
+@_CACHE_OPTION
 @_engine_options
 @click.pass_obj
 @friendly
@@ -623,13 +693,12 @@ def gallery_calibrate(store, data, fmr, eer, subject, cache, jobs, scheduler):
     from facerec3d.gallery.engine import Engine
     from facerec3d.gallery.service import scan_records
     from facerec3d.gallery.store import GalleryStore
-    from facerec3d.preprocess.batch import DEFAULT_CACHE
 
     if _remote_gallery() is not None:
         raise click.UsageError("calibrate a gallery store file, not a service")
     records = scan_records(data, subject) if data else None
     with Engine.create(jobs, scheduler) as engine, GalleryStore(store) as s:
-        _calibrate_threshold(s, records, None if eer else fmr, engine, cache or DEFAULT_CACHE)
+        _calibrate_threshold(s, records, None if eer else fmr, engine, _cache_folder(cache))
 
 
 @gallery.command("stats")
@@ -711,7 +780,8 @@ def serve(gallery, keys_file, host, port, jobs, scheduler, method, method_config
     try:
         from facerec3d.server.app import ServiceSettings, serve as run
     except ImportError as e:
-        raise click.ClickException(f"the service needs FastAPI and uvicorn ({e}): pip install 'facerec3d[service]'")
+        raise FaceRec3DError(f"serve: the service needs FastAPI and uvicorn ({e}): pip install -e \".[service]\" "
+                             "(or pip install 'facerec3d[service]')") from None
     from facerec3d.config import read_settings
     from facerec3d.preprocess import PreprocessConfig
 
@@ -778,6 +848,46 @@ def keys_remove(name, keys_file):
     click.echo(f"removed key {name!r}")
 
 
+@main.group()
+def cache():
+    """The preprocessing cache: faces already preprocessed, reused by evaluate, enroll, identify and verify (keyed
+    by file path, size, modification time and the settings, so a changed file or setting is computed again)."""
+
+
+_CACHE_DIR_OPTION = click.option("--cache", "folder", type=click.Path(file_okay=False),
+                                 help="The cache folder [default: the user's, shown by info].")
+
+
+@cache.command("info")
+@_CACHE_DIR_OPTION
+@friendly
+def cache_info(folder):
+    """Where the cache is, how many faces and failures it holds and its size."""
+    from facerec3d.preprocess.batch import DEFAULT_CACHE, cache_entries
+
+    folder = Path(folder) if folder else DEFAULT_CACHE
+    entries = cache_entries(folder)
+    faces = sum(p.suffix == ".npz" for p in entries)
+    size = sum(p.stat().st_size for p in entries)
+    click.echo(f"{folder}{'' if folder.is_dir() else ' (not made yet)'}: {faces} faces, {len(entries) - faces} "
+               f"failures, {size / 2**20:.1f} MiB")
+
+
+@cache.command("clear")
+@_CACHE_DIR_OPTION
+@friendly
+def cache_clear(folder):
+    """Remove the cache's entries (other files in the folder stay)."""
+    from facerec3d.preprocess.batch import DEFAULT_CACHE, cache_entries
+
+    folder = Path(folder) if folder else DEFAULT_CACHE
+    entries = cache_entries(folder)
+    size = sum(p.stat().st_size for p in entries)
+    for path in entries:
+        path.unlink(missing_ok=True)
+    click.echo(f"removed {len(entries)} entries ({size / 2**20:.1f} MiB) from {folder}")
+
+
 @main.command()
 @click.argument("runs", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False))
 @click.option("--out", "out", default="compare", show_default=True, type=click.Path(file_okay=False))
@@ -803,17 +913,19 @@ def compare(runs, out):
 @click.option("--higher-is-better/--lower-is-better", default=True, show_default=True,
               help="Scores are similarities, or distances (negated).")
 @click.option("--out", "out", required=True, type=click.Path(file_okay=False), help="Run folder to write.")
+@_OVERWRITE_OPTION
 @_bootstrap_options
 @friendly
-def metrics(scores, fmt, higher_is_better, out, bootstrap, seed):
+def metrics(scores, fmt, higher_is_better, out, overwrite, bootstrap, seed):
     """Every figure, plot and report of an evaluation from SCORES, a score file written by any system."""
     import hashlib
 
     from facerec3d.evaluation.provenance import provenance
-    from facerec3d.evaluation.report import write_run
+    from facerec3d.evaluation.report import claim_run_folder, write_run
     from facerec3d.evaluation.scorefile import read_score_matrix
 
     m = read_score_matrix(scores, fmt, higher_is_better)
+    claim_run_folder(out, overwrite, keep=[scores])
     source = Path(scores).resolve()
     rerun = ["facerec3d", "metrics", source, "--format", fmt,
              "--higher-is-better" if higher_is_better else "--lower-is-better", "--out", Path(out).resolve(),
@@ -871,7 +983,7 @@ def demo(subjects, scans, methods, out, jobs, seed):
     for name in names:
         click.echo(f"\n== {name}" + (f" (trained on {out / 'train'})" if name in learnt else ""))
         m = run(out / "data", name, out / name, jobs=jobs, cache=out / "cache",
-                train=out / "train" if name in learnt else None)
+                train=out / "train" if name in learnt else None, overwrite=True)  # its own runs: made again
         _print_metrics(m)
     compare_runs([out / name for name in names], out / "compare")
     click.echo(f"\nreports: {out / 'compare' / 'compare.html'} (all methods), {out}/<method>/report.html")

@@ -69,3 +69,13 @@ class SettingsError(FaceRec3DError, ValueError):
         """The same error inside a file (when it names none yet) and a section (`section.field`)."""
         field = ".".join(x for x in (section, self.field) if x) or None
         return SettingsError(self.path if self.path is not None else path, field, self.reason)
+
+
+def short_of(value: float, limit: float, digits: int = 1) -> str:
+    """`value` printed for a message that says it falls short of `limit`, with as many decimals (at least
+    `digits`) as it takes to read as less than the limit when printed (`short_of(5.96, 6)` is "5.96", never "6")."""
+    for d in range(digits, 7):
+        text = f"{value:.{d}f}"
+        if float(text) < limit:
+            return text
+    return repr(float(value))

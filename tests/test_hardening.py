@@ -128,7 +128,7 @@ def test_no_small_file_makes_a_command_exceed_1_gib(tmp_path):
     assert peak < GiB_KB, f"info: {peak / 1024:.0f} MiB"
     assert code == 2 and "Traceback" not in err and "2000x2000 grid, 4000000 valid points" in out, err
     for f, reason in zip(files[:-1], expected.values()):  # far.ply is a readable point cloud
-        assert any(line.startswith(f"{f}: error:") and reason in line for line in err.splitlines()), (f, err)
+        assert any(line.startswith(f"error: {f}: ") and reason in line for line in err.splitlines()), (f, err)
     peak, code, out, err = peak_rss_kb(tmp_path, "preprocess", *files, biggest, "-o", tmp_path / "out", "--jobs", "1")
     assert peak < GiB_KB, f"preprocess: {peak / 1024:.0f} MiB"
     assert code == 1 and "Traceback" not in err and f"0 kept, {len(files) + 1} failed" in out, err
@@ -455,15 +455,16 @@ def test_rank1_all_counts_probes_of_subjects_that_failed_to_enrol(data, tmp_path
 
 # ---------------------------------------------------------------- 8. unique output names
 def test_preprocess_gives_every_input_its_own_output(data, tmp_path):
-    assert unique_stems(["d1/face.ply", "d2/face.ply", "face-2.ply", "d3/FACE.abs.gz"]) == \
-        ["face", "face-3", "face-2", "FACE-4"]
+    assert unique_stems(["d1/face.ply", "d2/face.ply", "d1/face-2.ply", "d3/FACE.abs.gz"]) == \
+        ["d1_face", "d2_face", "d1_face-2", "d3_FACE"]  # files of several folders: the folder (the person) named
+    assert unique_stems(["d1/face.ply", "d1/face.abs", "d1/face-2.ply"]) == ["face", "face-3", "face-2"]
     (tmp_path / "d1").mkdir(), (tmp_path / "d2").mkdir()
     a, b = tmp_path / "d1" / "face.abs.gz", tmp_path / "d2" / "face.abs.gz"
     shutil.copy(data["scans"][0], a), shutil.copy(data["scans"][1], b)
     r = CliRunner().invoke(main, ["preprocess", str(a), str(b), "-o", str(tmp_path / "out"), "--jobs", "1"])
     assert r.exit_code == 0 and "2 kept, 0 failed" in r.output, r.output
     rows = {row["scan"]: row["output"] for row in csv.DictReader(open(tmp_path / "out" / "landmarks.csv"))}
-    assert rows == {str(a): str(tmp_path / "out" / "face.npz"), str(b): str(tmp_path / "out" / "face-2.npz")}
+    assert rows == {str(a): str(tmp_path / "out" / "d1_face.npz"), str(b): str(tmp_path / "out" / "d2_face.npz")}
     assert load_scan(rows[str(a)]).n_points != load_scan(rows[str(b)]).n_points  # two different faces
 
 

@@ -75,6 +75,21 @@ class Dataset:
     def subjects(self) -> list[str]:
         return sorted({r.subject for r in self.records})
 
+    @property
+    def root(self) -> Path:
+        """The folder scan paths are given relative to: the dataset folder, or a manifest's folder."""
+        return self.source.parent if self.source.is_file() else self.source
+
+    def label(self, record: ScanRecord) -> str:
+        """The scan's label in score files and reports: its path relative to `root` (`/`-separated; absolute
+        when outside it), unique where file stems are not (`s000/front_1.png` and `s001/front_1.png`), with
+        white space percent-encoded so that it stays one field of a score file."""
+        try:
+            rel = record.path.relative_to(self.root).as_posix()
+        except ValueError:
+            rel = record.path.as_posix()
+        return re.sub(r"[\s%]", lambda m: f"%{ord(m[0]):02X}", rel)
+
 
 def open_dataset(source: str | Path) -> Dataset:
     """The dataset at `source`: a manifest CSV, or a folder in FRGC or Bosphorus layout (auto-detected).
@@ -148,6 +163,9 @@ def read_manifest(path: str | Path) -> Dataset:
         if role not in (None, "gallery", "probe"):
             raise DatasetError(f"{path}, line {line}: role must be gallery or probe, not {role!r}")
         kind = None if expression is None else ("neutral" if expression == "neutral" else "expression")
+        if BOSPHORUS_PATTERN.match(p.name) and (label or "").split("_")[0].upper() not in BOSPHORUS_KINDS:
+            named = _bosphorus_record(p)  # a Bosphorus file: its type and label from its name, as in its folder
+            kind, label, expression = named.kind, named.label, expression or named.expression
         session = (row.get("session") or "").strip() or _frgc_session(p)
         records.append(ScanRecord(p, row["subject"].strip(), scan_stem(p), expression, kind, label,
                                   session, role, (row.get("pose") or "").strip() or None))

@@ -20,7 +20,9 @@
 - `bosphorus`: the first neutral scan of each subject is the gallery; the
   other scans are probes, reported by subset: neutral (N), non-neutral (E,
   LFAU, UFAU, CAU), each of E, LFAU, UFAU, CAU, each emotion (E_HAPPY, ...),
-  pose (YR, PR, CR), each of YR, PR, CR, and occlusion (O).
+  pose (YR, PR, CR), each of YR, PR, CR, and occlusion (O). A dataset none
+  of whose scans has a Bosphorus type (a bsNNN_TYPE_SUB_k.bnt name, or a
+  manifest label such as E_HAPPY) is refused: its gallery would be nonsense.
 - `roles`: a manifest's `role` column says gallery or probe.
 - `all-vs-all`: every scan is in the gallery and is a probe; a scan is never
   compared with itself.
@@ -34,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from facerec3d.errors import InputError
-from facerec3d.datasets.catalog import Dataset, ScanRecord
+from facerec3d.datasets.catalog import BOSPHORUS_KINDS, BOSPHORUS_PATTERN, Dataset, ScanRecord
 
 PROTOCOLS = ("frgc", "frgc-exp3", "bosphorus", "roles", "all-vs-all")
 SEMESTERS = ("Spring2003", "Fall2003", "Spring2004")  # FRGC's, in time order
@@ -63,11 +65,13 @@ class Split:
 
 
 def default_protocol(dataset: Dataset) -> str:
-    """Bosphorus for a Bosphorus folder, roles for a manifest with a role column, FRGC otherwise."""
-    if dataset.layout == "bosphorus":
-        return "bosphorus"
+    """Roles for a manifest with a role column; Bosphorus for a Bosphorus folder (or a manifest of Bosphorus
+    files); FRGC otherwise."""
     if any(r.role for r in dataset.records):
         return "roles"
+    if dataset.layout == "bosphorus" or dataset.records and all(BOSPHORUS_PATTERN.match(r.path.name)
+                                                                for r in dataset.records):
+        return "bosphorus"
     return "frgc"
 
 
@@ -120,16 +124,17 @@ def _subsets(records, probes: list[int], bosphorus: bool = False) -> dict[str, l
     return {name: m for name, m in named.items() if m}
 
 
-def _exp3(recs: tuple[ScanRecord, ...]) -> Split:
+def _exp3(dataset: Dataset) -> Split:
     """FRGC Experiment 3: all against all over Fall 2003 and Spring 2004, with the ROC I / II / III masks."""
+    recs = dataset.records
     sem = [semester(r.session) for r in recs]
     unknown = [r for r, s in zip(recs, sem) if s is None]
     if unknown:
-        raise InputError(f"frgc-exp3: {len(unknown)} scans have no FRGC semester (a Fall2003range / Spring2003range"
-                         f" / Spring2004range folder or a session column), e.g. {unknown[0].path}")
+        raise InputError(f"{dataset.source}: frgc-exp3: {len(unknown)} scans have no FRGC semester (a Fall2003range / "
+                         f"Spring2003range / Spring2004range folder or a session column), e.g. {unknown[0].path}")
     every = [i for i, s in enumerate(sem) if s in EXP3_SEMESTERS]
     if not every:
-        raise InputError("frgc-exp3: no Fall 2003 or Spring 2004 scans")
+        raise InputError(f"{dataset.source}: frgc-exp3: no Fall 2003 or Spring 2004 scans")
     s = np.array([sem[i] for i in every])
     year = np.array([ACADEMIC_YEAR[x] for x in s])
     masks = {"ROC I": s[:, None] == s[None, :], "ROC II": year[:, None] == year[None, :],
@@ -149,19 +154,23 @@ def split(dataset: Dataset, protocol: str | None = None) -> Split:
         probes = sorted(everything - set(gallery))
         return Split(protocol, gallery, probes, _subsets(recs, probes))
     if protocol == "frgc-exp3":
-        return _exp3(recs)
+        return _exp3(dataset)
     if protocol == "bosphorus":
+        if not any(_bosphorus_type(r) in BOSPHORUS_KINDS or BOSPHORUS_PATTERN.match(r.path.name) for r in recs):
+            raise InputError(f"{dataset.source}: the bosphorus protocol needs Bosphorus scan types (N, E, LFAU, UFAU, "
+                             "CAU, YR, PR, CR, O: bsNNN_TYPE_SUB_k.bnt names, or a manifest label such as E_HAPPY) "
+                             "and none of its scans has one; use --protocol frgc, roles or all-vs-all")
         neutral = {i for i in everything if recs[i].kind == "neutral"}
         gallery = sorted(_first_neutral(recs, neutral or everything).values())
         probes = sorted(everything - set(gallery))
         return Split(protocol, gallery, probes, _subsets(recs, probes, bosphorus=True))
     if protocol == "roles":
         if not any(r.role for r in recs):
-            raise InputError("the roles protocol needs a manifest with a role column")
+            raise InputError(f"{dataset.source}: the roles protocol needs a manifest with a role column")
         gallery = [i for i, r in enumerate(recs) if r.role == "gallery"]
         probes = [i for i, r in enumerate(recs) if r.role == "probe"]
         return Split(protocol, gallery, probes, _subsets(recs, probes))
     if protocol == "all-vs-all":
         every = sorted(everything)
         return Split(protocol, every, every, _subsets(recs, every), exclude_self=True)
-    raise InputError(f"unknown protocol {protocol!r}: use one of {', '.join(PROTOCOLS)}")
+    raise InputError(f"{dataset.source}: unknown protocol {protocol!r}: use one of {', '.join(PROTOCOLS)}")

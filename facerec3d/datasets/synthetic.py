@@ -717,7 +717,20 @@ def scan_path(spec: ScanSpec, index: int, fmt: str) -> str:
             kind, sub = "YR", f"{'R' if spec.yaw > 0 else 'L'}{int(round(abs(spec.yaw) / 10) * 10)}"
         bs = f"bs{spec.subject:03d}"
         return f"{bs}/{bs}_{kind}_{sub}_{spec.seed}.bnt"
-    raise ValueError(f"unknown format {fmt!r}: use 'abs' or 'bnt'")
+    if fmt == "png":  # a depth camera's frames, one folder per person; the names repeat across people
+        kind = SCAN_PLAN[spec.seed % len(SCAN_PLAN)]
+        return f"{subject_id(spec.subject)}/{'front' if kind == 'neutral' else kind}_{spec.seed + 1}.png"
+    raise ValueError(f"unknown format {fmt!r}: use 'abs', 'bnt' or 'png'")
+
+
+def frame_intrinsics(scanner: ScannerConfig) -> "Intrinsics":
+    """The pinhole intrinsics of the simulated camera, as `intrinsics.json` gives them for its depth frames
+    (1 mm depth units where the sensor reports millimetres, else 0.1 mm)."""
+    from facerec3d.io import Intrinsics
+
+    return Intrinsics(fx=scanner.focal_px, fy=scanner.focal_px, cx=(scanner.cols - 1) / 2.0,
+                      cy=(scanner.rows - 1) / 2.0, depth_unit_mm=1.0 if scanner.depth_step_mm >= 1.0 else 0.1,
+                      width=scanner.cols, height=scanner.rows)
 
 
 MANIFEST_COLUMNS = ("path", "subject", "expression", "label", "session", "pose", "yaw", "pitch", "roll") + tuple(
@@ -726,7 +739,8 @@ MANIFEST_COLUMNS = ("path", "subject", "expression", "label", "session", "pose",
 
 
 def write_dataset(out: str | Path, cfg: DatasetConfig = DatasetConfig(), fmt: str = "abs", progress: bool = False) -> Path:
-    """Write a synthetic dataset in FRGC (`abs`) or Bosphorus (`bnt`) layout with `manifest.csv`.
+    """Write a synthetic dataset in FRGC (`abs`) or Bosphorus (`bnt`) layout, or as a depth camera's 16-bit
+    frames (`png`: `<subject>/front_1.png`, ... with `intrinsics.json` at the top), with `manifest.csv`.
 
     The manifest has `path,subject,expression,label,session,pose` (as
     `facerec3d` datasets read it: the FRGC semester folder, empty for `bnt`;
@@ -735,10 +749,15 @@ def write_dataset(out: str | Path, cfg: DatasetConfig = DatasetConfig(), fmt: st
     truth: head pose (degrees) and the fiducials in scan coordinates (mm), and
     last the scan's occluder (empty for none). Returns the manifest's path.
     """
-    from facerec3d.io import save_scan
+    from facerec3d.io import save_scan, write_depth_image
+    from facerec3d.io.depth import scan_to_frame
 
     out = Path(out)
     scanner = FaceScanner(cfg.scanner, seed=cfg.seed, identity=cfg.identity)
+    if fmt == "png":
+        camera = frame_intrinsics(cfg.scanner)
+        out.mkdir(parents=True, exist_ok=True)
+        camera.save(out / "intrinsics.json")
     specs = plan_dataset(cfg)
     rows = []
     it = specs
@@ -750,7 +769,10 @@ def write_dataset(out: str | Path, cfg: DatasetConfig = DatasetConfig(), fmt: st
         rel = scan_path(spec, i, fmt)
         s = scanner.scan(spec)
         (out / rel).parent.mkdir(parents=True, exist_ok=True)
-        save_scan(s.scan, out / rel)
+        if fmt == "png":
+            write_depth_image(out / rel, scan_to_frame(s.scan, camera), camera)
+        else:
+            save_scan(s.scan, out / rel)
         row = {"path": rel, "subject": s.scan.meta.subject, "expression": s.scan.meta.expression,
                "label": s.scan.meta.extra["label"], "session": scan_session(spec) if fmt == "abs" else "",
                "pose": POSE_LABELS.get(SCAN_PLAN[spec.seed % len(SCAN_PLAN)], ""), "yaw": f"{spec.yaw:.3f}",

@@ -66,8 +66,9 @@ def compare_runs(run_dirs: Sequence[str | Path], out_dir: str | Path) -> dict:
     Writes compare_roc.png and compare_cmc.png, compare_det.png when some run
     has a DET curve, and compare.html / compare.md. Runs are numbered #1, #2,
     ... in the order given; tables (each fits a 1280 px page: wide ones have
-    a column per run): "Runs" (number, label "<method> (<folder name>)",
-    protocol, probes, gallery); "Figures" (a row per run: FTA and rank-1, EER,
+    a column per run): "Runs" (number, label "<method> (<folder name>)", or
+    the folder's name alone when it is the method's, protocol, probes,
+    gallery); "Figures" (a row per run: FTA and rank-1, EER,
     VR@0.1%, VR@1%, FNIR@FPIR 1% with their 95 % intervals); "Rank-1 by
     subset" (a row per subset found in any run); "VR@0.1% by comparison mask"
     (FRGC ROC I-III, when present); "Timings" (a row per timings entry, named
@@ -88,7 +89,8 @@ def compare_runs(run_dirs: Sequence[str | Path], out_dir: str | Path) -> dict:
     for d in map(Path, run_dirs):
         metrics, curves = _load(d)
         method = metrics.get("method")
-        runs.append({"label": f"{method} ({d.name})" if method else d.name, "dir": str(d), "metrics": metrics,
+        label = f"{method} ({d.name})" if method and method != d.name else d.name  # "icp", not "icp (icp)"
+        runs.append({"label": label, "dir": str(d), "metrics": metrics,
                      "curves": curves, "hits": rank1_hits(d)})
     labels = [r["label"] for r in runs]
     for i, r in enumerate(runs):  # keep labels unique so no curve hides another

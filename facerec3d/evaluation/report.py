@@ -29,6 +29,33 @@ from facerec3d.evaluation.metrics import (BOOTSTRAP, CI_LEVEL, FAR_LEVELS, FPIR_
 from facerec3d.evaluation.plots import plot_cmc, plot_det, plot_roc, plot_score_histograms
 from facerec3d.evaluation.scorefile import write_scores
 
+#: The files of a run folder (write_run's, and evaluate's settings and model): a folder holding any of them holds a
+#: run, and a new run into it removes them first, so that none is left over from another method.
+RUN_FILES = ("metrics.json", "scores.txt", "probes.csv", "curves.npz", "roc.png", "roc_masks.png", "det.png",
+             "cmc.png", "open_set.png", "scores_hist.png", "report.html", "report.md", "method.json", "model.npz",
+             "preprocess.json")
+
+
+def claim_run_folder(out_dir: str | Path, overwrite: bool = False, keep: Sequence[str | Path | None] = ()) -> Path:
+    """Make `out_dir` ready for a new run: refuse (InputError) a folder that already holds a run unless
+    `overwrite`, and then remove that run's files (`RUN_FILES`; other files stay), except those in `keep` (e.g.
+    the model the new run loads)."""
+    from facerec3d.errors import InputError
+
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: not a folder (a run folder is written there)")
+    held = [out / name for name in RUN_FILES if (out / name).is_file()]
+    if held and not overwrite:
+        raise InputError(f"{out}: holds a run already ({', '.join(p.name for p in held[:3])}"
+                         f"{', ...' if len(held) > 3 else ''}): give --overwrite to replace it, or another --out")
+    kept = {Path(k).resolve() for k in keep if k is not None}
+    for path in held:
+        if path.resolve() not in kept:
+            path.unlink()
+    return out
+
+
 # summarize() keys shown in reports, with their labels; RATES are shown in %.
 SUMMARY_ROWS = (
     ("n_probes", "Probes"),

@@ -27,7 +27,7 @@ from facerec3d.datasets.catalog import open_dataset
 from facerec3d.datasets.protocols import split
 from facerec3d.evaluation.metrics import BOOTSTRAP
 from facerec3d.evaluation.provenance import provenance
-from facerec3d.evaluation.report import write_run
+from facerec3d.evaluation.report import claim_run_folder, write_run
 from facerec3d.gallery.cascade import Cascade, CascadeConfig, check_cascadable
 from facerec3d.gallery.engine import Engine
 from facerec3d.matching.registry import DEFAULT_METHOD, trained_matcher
@@ -40,7 +40,7 @@ def evaluate(data: str | Path, method: str = DEFAULT_METHOD, out: str | Path = "
              config: PreprocessConfig = PreprocessConfig(), options: Mapping[str, Any] | None = None,
              train: str | Path | None = None, model: str | Path | None = None, cascade: CascadeConfig | None = None,
              intrinsics: str | Path | None = None, bootstrap: int = BOOTSTRAP, seed: int = 0,
-             progress: bool = True) -> dict:
+             progress: bool = True, overwrite: bool = True) -> dict:
     """Evaluate `method` (with config `options`) on the dataset at `data` and write the run folder `out`;
     returns metrics.json's content. Learnt methods are fitted on the dataset `train` (and the model saved
     as out/model.npz) or loaded from `model`. Everything runs on a `gallery.engine.Engine`: `jobs` processes,
@@ -57,23 +57,27 @@ def evaluate(data: str | Path, method: str = DEFAULT_METHOD, out: str | Path = "
     or loaded model) and preprocess.json, and metrics.json's "provenance" holds the command that repeats the
     run from them (`rerun`), with version, git commit, date and machine. Timings separate first use (worker
     start, JIT compilation: the first template and the first probe of each worker) from the steady state, and
-    cached from computed preprocessing."""
+    cached from computed preprocessing.
+
+    A folder `out` that holds an earlier run is refused unless `overwrite` (the command line's --overwrite; here
+    the default), and then that run's files are removed first (`report.RUN_FILES`), so none is left over."""
+    dataset = open_dataset(data)
+    sp = split(dataset, protocol)  # a dataset the protocol does not suit is refused before any work
+    claim_run_folder(out, overwrite, keep=[model])
     with Engine.create(jobs, scheduler) as engine:
         matcher, training = trained_matcher(method, options, train=train, model=model, workers=engine, cache=cache,
                                             config=config, progress=progress)
         if cascade is not None:
             check_cascadable(matcher)
-        return _evaluate(engine, matcher, training, data, out, protocol=protocol, jobs=jobs, cache=cache,
+        return _evaluate(engine, matcher, training, dataset, sp, data, out, jobs=jobs, cache=cache,
                          config=config, model=model, cascade=cascade, intrinsics=intrinsics, bootstrap=bootstrap,
                          seed=seed, progress=progress)
 
 
-def _evaluate(engine: Engine, matcher, training: dict, data: str | Path, out: str | Path, *, protocol, jobs, cache,
-              config, model, cascade, intrinsics, bootstrap, seed, progress) -> dict:
-    """`evaluate` with its engine and (trained) matcher."""
+def _evaluate(engine: Engine, matcher, training: dict, dataset, sp, data: str | Path, out: str | Path, *, jobs,
+              cache, config, model, cascade, intrinsics, bootstrap, seed, progress) -> dict:
+    """`evaluate` with its engine, (trained) matcher, dataset and split."""
     method = matcher.name
-    dataset = open_dataset(data)
-    sp = split(dataset, protocol)
     recs = dataset.records
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -103,15 +107,20 @@ def _evaluate(engine: Engine, matcher, training: dict, data: str | Path, out: st
     probes = [i for i in sp.probes if i in faces]
     workers = engine.workers
     t0 = time.perf_counter()
-    gallery = engine.enroll(matcher, [faces[i] for i in enrolled[:workers]])  # first use: one per worker
-    timings["enrol_first_s"] = time.perf_counter() - t0
-    t1 = time.perf_counter()
-    gallery += engine.enroll(matcher, [faces[i] for i in enrolled[workers:]])
-    steady = (time.perf_counter() - t1, len(enrolled) - workers) if len(enrolled) > workers else \
-        (timings["enrol_first_s"], len(enrolled))
-    search = None if cascade is None else Cascade(cascade)
-    if search is not None:  # the keypoint screen's own gallery, sharded alike
-        search.load_screen(engine, [faces[i] for i in enrolled])
+    with tqdm(total=len(enrolled), desc="enrolling", unit="scan", disable=not progress) as bar:
+        gallery = engine.enroll(matcher, [faces[i] for i in enrolled[:workers]])  # first use: one per worker
+        bar.update(len(gallery))
+        timings["enrol_first_s"] = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        for a in range(workers, len(enrolled), 8 * workers):  # in batches, so that the bar moves
+            gallery += engine.enroll(matcher, [faces[i] for i in enrolled[a:a + 8 * workers]])
+            bar.update(len(gallery) - bar.n)
+        steady = (time.perf_counter() - t1, len(enrolled) - workers) if len(enrolled) > workers else \
+            (timings["enrol_first_s"], len(enrolled))
+        search = None if cascade is None else Cascade(cascade)
+        if search is not None:  # the keypoint screen's own gallery, sharded alike
+            bar.set_postfix_str("keypoint screen")
+            search.load_screen(engine, [faces[i] for i in enrolled])
     timings["enrol_s"] = time.perf_counter() - t0
     timings["enrol_ms"] = 1000 * steady[0] / max(steady[1], 1)
 
@@ -155,7 +164,7 @@ def _evaluate(engine: Engine, matcher, training: dict, data: str | Path, out: st
     for name, members in sp.subsets.items():
         chosen = {sp.probes[k] for k in members}
         masks[name] = np.array([i in chosen for i in probes], dtype=bool)
-        subset_failures[name] = [recs[i].scan_id for i in failed_probes if i in chosen]
+        subset_failures[name] = [dataset.label(recs[i]) for i in failed_probes if i in chosen]
     position = {i: k for k, i in enumerate(sp.probes)}, {i: k for k, i in enumerate(sp.gallery)}
     pair_masks = {name: m[np.ix_([position[0][i] for i in probes], [position[1][i] for i in enrolled])]
                   for name, m in sp.masks.items()}
@@ -181,8 +190,8 @@ def _evaluate(engine: Engine, matcher, training: dict, data: str | Path, out: st
             "quality_median": {k: float(np.median([q[k] for q in quality if k in q]))
                                for k in QUALITY_FIELDS if any(k in q for q in quality)},
             "scan_quality": quality}
-    return write_run(out, S, [recs[i].subject for i in probes], [recs[i].scan_id for i in probes],
+    return write_run(out, S, [recs[i].subject for i in probes], [dataset.label(recs[i]) for i in probes],
                      [recs[i].subject for i in enrolled], info, tiebreak=tiebreak, subsets=masks,
-                     subset_failures=subset_failures, failed=[(recs[i].scan_id, recs[i].subject) for i in failed_probes],
+                     subset_failures=subset_failures, failed=[(dataset.label(recs[i]), recs[i].subject) for i in failed_probes],
                      masks=pair_masks, bootstrap=bootstrap, seed=seed,
                      unenrolled=sorted({recs[i].subject for i in sp.gallery if i not in faces} - {recs[i].subject for i in enrolled}))

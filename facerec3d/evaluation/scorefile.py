@@ -182,8 +182,9 @@ def read_score_matrix(path: str | Path, fmt: str = "bob4", higher_is_better: boo
     subjects = real[np.unique(row, return_index=True)[1]]
     clash = subjects[row] != real
     if clash.any():
-        raise InputError(f"{path}: probe {label[clash][0]!r} has two subjects ({subjects[row][clash][0]!r}, "
-                         f"{real[clash][0]!r})")
+        first = np.flatnonzero(clash)[0]
+        raise InputError(f"{path}: probe label {str(label[first])!r} has two subjects ({str(subjects[row][first])!r}, "
+                         f"{str(real[first])!r}): each probe needs its own label (e.g. its path)")
     if model is None:  # the k-th line of a (probe, claimed subject): its k-th template
         _, pair = np.unique(np.stack([row.astype(str), claimed], axis=1), axis=0, return_inverse=True)
         order = np.argsort(pair, kind="stable")
@@ -197,7 +198,8 @@ def read_score_matrix(path: str | Path, fmt: str = "bob4", higher_is_better: boo
     cell = row * len(templates) + col
     if np.unique(cell).size < cell.size:
         twice = np.flatnonzero(np.bincount(cell)[cell] > 1)[0]
-        raise InputError(f"{path}: probe {label[twice]!r} is compared twice with {claimed[twice]!r} {model[twice]!r}")
+        raise InputError(f"{path}: probe {str(label[twice])!r} is compared twice with {str(claimed[twice])!r} "
+                         f"{str(model[twice])!r}")
     S = np.full((labels.size, len(templates)), np.nan)
     S[row, col] = score if higher_is_better else -score
     return ScoreMatrix(S, subjects, labels, templates[:, 0])

@@ -45,10 +45,18 @@ SUPPORTED_SUFFIXES = tuple(READERS)
 
 
 def unique_stems(paths) -> list[str]:
-    """A distinct output name for each path: its `scan_stem`, or `stem-2`, `stem-3`, ... where an earlier path (or
-    another path's stem) has it, so that `a/face.ply` and `b/face.ply` do not overwrite one another (compared
-    without case, as some file systems do)."""
-    stems = [scan_stem(p) for p in paths]
+    """A distinct output name for each path: its `scan_stem`; when files in different folders share a stem, every
+    name is prefixed with the file's folder, which is usually the person (`s000/front_1.png`, `s000/front_2.png`,
+    `s001/front_1.png` give `s000_front_1`, `s000_front_2`, `s001_front_1`); and `name-2`, `name-3`, ... where an
+    earlier path (or another path's name) still has it, so that no output overwrites another (compared without
+    case, as some file systems do)."""
+    bare = [scan_stem(p) for p in paths]
+    folders: dict[str, set[str]] = {}
+    for p, stem in zip(paths, bare):
+        folders.setdefault(stem.lower(), set()).add(str(Path(p).resolve().parent))
+    by_folder = any(len(f) > 1 for f in folders.values())
+    stems = [f"{folder}_{stem}" if by_folder and (folder := Path(p).resolve().parent.name) else stem
+             for p, stem in zip(paths, bare)]
     own, used, out = {s.lower() for s in stems}, set(), []
     for stem in stems:
         name, k = stem, 1

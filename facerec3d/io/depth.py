@@ -180,7 +180,9 @@ def _read_pixels(path: str | Path) -> np.ndarray:
 
 def read_depth_image(path: str | Path, intrinsics: Intrinsics | str | Path | None = None) -> FaceScan:
     """A depth frame as a grid scan in the camera frame (mm). `intrinsics`: given, a JSON file, or found beside
-    the frame (`find_intrinsics`); ScanFormatError when none is found or anything is wrong."""
+    the frame (`find_intrinsics`); ScanFormatError when none is found or anything is wrong (a file that is not a
+    depth image is said to be that first, whatever the intrinsics)."""
+    units = _read_pixels(path)
     if intrinsics is None:
         found = find_intrinsics(path)
         if found is None:
@@ -192,7 +194,6 @@ def read_depth_image(path: str | Path, intrinsics: Intrinsics | str | Path | Non
             intrinsics = Intrinsics.load(intrinsics)
         except ScanFormatError as e:  # name the frame and the intrinsics file it was read with
             raise ScanFormatError(path, f"{intrinsics}: {e.reason}") from None
-    units = _read_pixels(path)
     depth = np.where(units == intrinsics.invalid, np.nan, units.astype(np.float64) * intrinsics.depth_unit_mm)
     scan = frame_to_scan(depth, intrinsics, path)
     extra = {"pixel_focal": math.sqrt(intrinsics.fx * intrinsics.fy), "depth_unit_mm": intrinsics.depth_unit_mm}

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import time
 import uuid
 from collections.abc import Iterator, Sequence
@@ -73,6 +74,15 @@ def preprocess_file(path: str | Path, config: PreprocessConfig = PreprocessConfi
     if stored is not None:
         _write_cache(stored, outcome)
     return replace(outcome, seconds=time.perf_counter() - t0)
+
+
+_ENTRY = re.compile(r"^[0-9a-f]{40}(\.npz|\.fail|\..+\.tmp\.(npz|fail))$")  # cache_key + suffix, or a write's temp file
+
+
+def cache_entries(cache: str | Path) -> list[Path]:
+    """The entries of a cache folder (faces `.npz`, failures `.fail`, unfinished writes), nothing else in it."""
+    folder = Path(cache)
+    return sorted(p for p in folder.iterdir() if _ENTRY.match(p.name) and p.is_file()) if folder.is_dir() else []
 
 
 def _read_cache(stored: Path, path: str | Path) -> Outcome | None:

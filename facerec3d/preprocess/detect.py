@@ -30,7 +30,7 @@ import numpy as np
 from numba import njit
 from scipy import ndimage
 
-from facerec3d.errors import FailureToAcquire
+from facerec3d.errors import FailureToAcquire, short_of
 from facerec3d.geometry.transforms import rotation_from_euler
 from facerec3d.preprocess.pose import ModelFit, ModelFitConfig, fit_face_model, hotelling_rotation
 from facerec3d.scan import FaceScan
@@ -244,11 +244,12 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
         if fit.inlier_fraction < config.min_inliers:
             why = f"the face model does not fit ({fit.inlier_fraction:.0%} of points)"
         elif protrusion < config.min_protrusion_mm:
-            why = (f"no face-shaped surface: nothing protrudes at the fitted nose (tip {protrusion:.0f} mm above its "
-                   f"surroundings, a nose needs {config.min_protrusion_mm:g})")
+            why = (f"no face-shaped surface: nothing protrudes at the fitted nose (tip "
+                   f"{short_of(protrusion, config.min_protrusion_mm)} mm above its surroundings, a nose needs "
+                   f"{config.min_protrusion_mm:g})")
         elif dome < config.min_dome_mm:
-            why = (f"no face-shaped surface: a rounded surface, no nose (tip {dome:.1f} mm above the dome around it, "
-                   f"a nose needs {config.min_dome_mm:g})")
+            why = (f"no face-shaped surface: a rounded surface, no nose (tip {short_of(dome, config.min_dome_mm)} mm "
+                   f"above the dome around it, a nose needs {config.min_dome_mm:g})")
         else:
             why = f"no face-shaped surface: the camera saw only {seen:.0%} of where the fitted face would be"
         raise FailureToAcquire(why, scan.meta.path)

@@ -516,13 +516,16 @@ def _intrinsics(text: str) -> dict:
     return camera
 
 
-def _upload(file: UploadFile, fmt: str | None, intrinsics: str | None) -> Received:
-    """The uploaded scan: its format from `fmt` or the file name's suffix (a label only, never a path)."""
+def _upload(file: UploadFile, fmt: str | None, intrinsics: str | UploadFile | None) -> Received:
+    """The uploaded scan: its format from `fmt` or the file name's suffix (a label only, never a path); the
+    intrinsics as a text field or a file part (`curl -F intrinsics=@intrinsics.json`)."""
     name = Path((file.filename or "upload").replace("\\", "/")).name[:128] or "upload"
     suffix = ("." + fmt.lower().lstrip(".")) if fmt else scan_suffix(name)
     if suffix not in SUPPORTED_SUFFIXES:
         raise ApiError(415, f"{name}: unknown scan format {suffix[:20] or '(none)'!r}: name the file with one of "
                             f"{', '.join(SUPPORTED_SUFFIXES)} or give the form field 'format'")
+    if intrinsics is not None and not isinstance(intrinsics, str):  # a file part: read no more than a field holds
+        intrinsics = intrinsics.file.read(MAX_INTRINSICS_CHARS + 1).decode("utf-8", errors="replace")
     return Received(file, suffix, name, _intrinsics(intrinsics) if intrinsics else None)
 
 
@@ -643,7 +646,8 @@ def create_app(service: Service):
                     subject: str = Form(..., description="Subject id"),
                     scan_id: str | None = Form(None, description="Scan id (default: the file name's stem)"),
                     format: str | None = Form(None, description="Format suffix when the file name has none, e.g. abs.gz"),
-                    intrinsics: str | None = Form(None, description="Depth frames: camera intrinsics JSON")):
+                    intrinsics: str | UploadFile | None = Form(None, description="Depth frames: camera "
+                                                               "intrinsics JSON, as text or a file")):
         """The new entry (201), or: 409 already enrolled (the same bytes), 422 a failure to enrol with its reason
         (recorded in the gallery's failures to enrol), 413 / 415 outside the limits. Answered only after the
         entry is committed to the store."""
@@ -659,7 +663,7 @@ def create_app(service: Service):
                        k: int = Form(5, ge=1, le=1000, description="Candidates to list"),
                        cascade: bool = Form(False, description="ICP: depth screen, then full ICP on a shortlist"),
                        shortlist: int = Form(20, ge=1, le=100000, description="Cascade shortlist length"),
-                       format: str | None = Form(None), intrinsics: str | None = Form(None)):
+                       format: str | None = Form(None), intrinsics: str | UploadFile | None = Form(None)):
         """Candidates best first (rank, entry, subject, scan_id, score: higher is more similar). Under the
         cascade, faces off the shortlist are not listed."""
         config = None
@@ -676,7 +680,7 @@ def create_app(service: Service):
     async def verify(request: Request, probe: UploadFile = File(..., description=scan_doc),
                      claim: str = Form(..., description="Claimed subject id"),
                      threshold: float | None = Form(None, description="Accept scores >= this (default: the method's)"),
-                     format: str | None = Form(None), intrinsics: str | None = Form(None)):
+                     format: str | None = Form(None), intrinsics: str | UploadFile | None = Form(None)):
         """The decision, the score and the threshold used; 404 when the claimed subject is not enrolled."""
         try:
             threshold = live.threshold(threshold)

@@ -1,0 +1,286 @@
+"""What a new user met in the first hour (issue 24): a depth camera's frames in per-person folders whose file names
+repeat (as in rap3df-2019), evaluated and scored again; run folders; the protocol check; the cache; the pipe;
+Ctrl-C; the error layout; messages; the service's intrinsics as a file part; the threshold hint."""
+
+import csv
+import json
+import re
+import subprocess
+import sys
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from facerec3d.cli import main
+from facerec3d.datasets.synthetic import DatasetConfig, frame_intrinsics, sensor_profile, write_dataset
+
+# a Kinect v2 at half its resolution (the field of view kept): quick, and still a depth camera's sampling
+KINECT_SMALL = replace(sensor_profile("kinect-v2"), rows=212, cols=256, focal_px=sensor_profile("kinect-v2").focal_px / 2)
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory):
+    """Depth frames of 3 people x 3 scans: <subject>/front_1.png, front_2.png, expression_3.png, intrinsics.json
+    at the top, manifest.csv (path, subject, expression, ...): every file name is there three times."""
+    root = tmp_path_factory.mktemp("frames")
+    write_dataset(root, DatasetConfig(subjects=3, scans=3, seed=2, scanner=KINECT_SMALL), "png")
+    return root
+
+
+@pytest.fixture(scope="module")
+def run(frames, tmp_path_factory):
+    """`facerec3d evaluate` of the frames (icp, one process)."""
+    out = tmp_path_factory.mktemp("run") / "icp"
+    r = CliRunner().invoke(main, ["evaluate", str(frames), "--out", str(out), "--jobs", "1", "--bootstrap", "0",
+                                  "--cache", str(out.parent / "cache")])
+    assert r.exit_code == 0, r.output
+    return out, r
+
+
+def test_frames_are_written_as_a_depth_camera_gives_them(frames):
+    rows = list(csv.DictReader(open(frames / "manifest.csv")))
+    assert [r["path"] for r in rows[:3]] == ["04200/front_1.png", "04200/front_2.png", "04200/expression_3.png"]
+    assert json.loads((frames / "intrinsics.json").read_text())["fx"] == pytest.approx(182.5)
+    from facerec3d.io import load_scan
+
+    scan = load_scan(frames / rows[0]["path"])  # read back through intrinsics.json: the truth is on the surface
+    nose = np.array([float(rows[0][f"nose_tip_{a}"]) for a in "xyz"])
+    assert np.min(np.linalg.norm(scan.points - nose, axis=1)) < 5.0
+
+
+def test_metrics_reads_evaluates_own_scores_of_frames_whose_names_repeat(run, tmp_path):
+    """Item 1: probe labels are the paths within the dataset (unique), so `metrics` takes the score file and gives
+    the run's figures again."""
+    out, r = run
+    lines = (out / "scores.txt").read_text().split("\n")
+    labels = {line.split()[2] for line in lines if line}
+    assert labels == {f"{s}/{name}" for s in ("04200", "04201", "04202") for name in ("front_2.png", "expression_3.png")}
+    r = CliRunner().invoke(main, ["metrics", str(out / "scores.txt"), "--out", str(tmp_path / "m"), "--bootstrap", "0"])
+    assert r.exit_code == 0, r.output
+    again = json.loads((tmp_path / "m" / "metrics.json").read_text())
+    evaluated = json.loads((out / "metrics.json").read_text())
+    for key in ("rank1", "eer", "n_probes", "vr_at_far_0.001"):
+        assert again[key] == evaluated[key]
+    with open(out / "probes.csv") as f:
+        assert {row["probe"] for row in csv.DictReader(f)} == labels
+
+
+def test_a_score_file_whose_label_has_two_subjects_is_one_plain_line(tmp_path):
+    scores = tmp_path / "s.txt"
+    scores.write_text("a a front_1 -1.0\nb a front_1 -3.0\na b front_1 -2.0\nb b front_1 -0.5\n")
+    r = CliRunner().invoke(main, ["metrics", str(scores), "--out", str(tmp_path / "m")])
+    assert r.exit_code == 2
+    assert r.output.startswith(f"error: {scores}: probe label 'front_1' has two subjects ('a', 'b')")
+    assert "np.str_" not in r.output and "Traceback" not in r.output
+
+
+def test_evaluate_shows_enrolment_progress(run):
+    """Item 3: a bar while the gallery is enrolled, between preprocessing and matching."""
+    _, r = run
+    out = r.output
+    assert "enrolling" in out and out.index("preprocessing") < out.index("enrolling") < out.index("matching")
+
+
+def test_a_run_folder_is_not_overwritten_without_overwrite(run, frames, tmp_path):
+    """Item 4: refused with the reason (before any work); with --overwrite the old run's files go, others stay."""
+    out, _ = run
+    folder = tmp_path / "again"
+    folder.mkdir()
+    for name in ("metrics.json", "scores.txt", "report.html"):
+        (folder / name).write_bytes((out / name).read_bytes())
+    (folder / "model.npz").write_bytes(b"an lda run's model")  # left by another method
+    (folder / "notes.txt").write_text("mine")
+    args = ["evaluate", str(frames), "--out", str(folder), "--jobs", "1", "--bootstrap", "0",
+            "--cache", str(out.parent / "cache")]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 2 and f"error: {folder}: holds a run already" in r.output and "--overwrite" in r.output
+    assert (folder / "model.npz").read_bytes() == b"an lda run's model"  # nothing touched
+    r = CliRunner().invoke(main, args + ["--overwrite"])
+    assert r.exit_code == 0, r.output
+    assert not (folder / "model.npz").exists() and (folder / "method.json").is_file()
+    assert (folder / "notes.txt").read_text() == "mine"
+
+
+def test_bosphorus_protocol_on_a_dataset_without_bosphorus_types_is_refused(frames, tmp_path):
+    """Item 6."""
+    r = CliRunner().invoke(main, ["evaluate", str(frames), "--protocol", "bosphorus", "--out", str(tmp_path / "b"),
+                                  "--cache", str(tmp_path / "cache"), "--jobs", "1"])
+    assert r.exit_code == 2, r.output
+    assert f"error: {frames / 'manifest.csv'}: the bosphorus protocol needs Bosphorus scan types" in r.output
+    assert not (tmp_path / "b").exists()  # refused before any work
+
+
+def test_preprocess_names_outputs_after_the_person(frames, tmp_path):
+    """Item 9: front_1.png of three people gives 04200_front_1.npz, ... not front_1, front_1-2, ..."""
+    inputs = [str(frames / s / "front_1.png") for s in ("04200", "04201")]
+    r = CliRunner().invoke(main, ["preprocess", *inputs, "-o", str(tmp_path / "faces"), "--jobs", "1"])
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in (tmp_path / "faces").glob("*.npz")) == ["04200_front_1.npz", "04201_front_1.npz"]
+
+
+def test_the_cache_says_where_it_is_and_can_be_listed_and_cleared(frames, tmp_path, monkeypatch):
+    from facerec3d.preprocess import batch
+
+    monkeypatch.setattr(batch, "DEFAULT_CACHE", tmp_path / "user-cache")
+    (tmp_path / "g").mkdir()
+    args = ["enroll", str(frames / "04200" / "front_1.png"), "--gallery", str(tmp_path / "g" / "g.sqlite"),
+            "--subject", "04200", "--jobs", "1"]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    assert f"preprocessing cache: {tmp_path / 'user-cache'} (first use" in r.output  # stderr, mixed in
+    r = CliRunner().invoke(main, ["cache", "info"])
+    assert r.exit_code == 0 and re.match(rf"{re.escape(str(tmp_path / 'user-cache'))}: 1 faces, 0 failures, "
+                                         r"[\d.]+ MiB", r.output), r.output
+    (tmp_path / "user-cache" / "keep.txt").write_text("not an entry")
+    r = CliRunner().invoke(main, ["cache", "clear"])
+    assert r.exit_code == 0 and "removed 1 entries" in r.output
+    assert [p.name for p in (tmp_path / "user-cache").iterdir()] == ["keep.txt"]
+    r = CliRunner().invoke(main, ["enroll", *args[1:]])  # said once: the folder is there now
+    assert "preprocessing cache:" not in r.output
+
+
+def test_output_into_a_closed_pipe_ends_quietly_as_a_unix_tool_does(tmp_path):
+    """Item 2: `facerec3d gallery g.sqlite list | head -1`."""
+    from facerec3d.gallery.store import GalleryStore
+
+    with GalleryStore(tmp_path / "g.sqlite", create=True) as store:
+        for i in range(5000):
+            store.add_failure(f"/scans/person-{i:05d}/front_1.png", "no face-shaped surface")
+    proc = subprocess.Popen([sys.executable, "-m", "facerec3d.cli", "gallery", str(tmp_path / "g.sqlite"), "list"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    first = proc.stdout.readline()
+    proc.stdout.close()  # as head -1 does
+    err = proc.stderr.read().decode()
+    assert proc.wait(60) == 141 and first.startswith(b"failed\t/scans/person-00000")
+    assert err == "", err
+
+
+def test_ctrl_c_exits_130_with_one_line(monkeypatch, tmp_path):
+    import facerec3d.datasets.synthetic
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(facerec3d.datasets.synthetic, "write_dataset", interrupted)
+    r = CliRunner().invoke(main, ["synth", str(tmp_path / "d")])
+    assert r.exit_code == 130 and r.output.strip() == "interrupted"
+
+
+def test_info_lays_out_errors_as_every_command_does(tmp_path, frames):
+    """Item 8: `error: FILE: reason`; and an RGBA or empty PNG is "not a depth image" before any intrinsics."""
+    from PIL import Image
+
+    rgba, empty = tmp_path / "photo.png", tmp_path / "empty.png"  # no intrinsics.json anywhere near
+    Image.new("RGBA", (8, 8)).save(rgba)
+    empty.write_bytes(b"")
+    r = CliRunner().invoke(main, ["info", str(rgba), str(empty), str(frames / "04200" / "front_1.png")])
+    assert r.exit_code == 2
+    lines = r.output.splitlines()
+    assert lines[0] == f"error: {rgba}: not a depth image: Pillow mode RGBA (need 16-bit grey)"
+    assert lines[1].startswith(f"error: {empty}: ") and "intrinsics" not in lines[1]
+    assert lines[2].startswith(f"{frames / '04200' / 'front_1.png'}: 212x256 grid")
+
+
+def test_a_reason_that_falls_short_never_reads_as_a_pass():
+    """Item 5: "tip 6 mm above its surroundings, a nose needs 6" was 5.6 mm rounded."""
+    from facerec3d.errors import short_of
+
+    assert short_of(5.6, 6) == "5.6" and short_of(5.96, 6) == "5.96" and short_of(5.9996, 6) == "5.9996"
+    assert short_of(2.5, 6) == "2.5" and float(short_of(5.99999999, 6)) < 6
+
+
+def test_compare_legends_name_a_run_once(tmp_path):
+    """Item 8: a run folder named after its method is "icp", not "icp (icp)"; another folder keeps its name."""
+    from facerec3d.evaluation.compare import compare_runs
+    from facerec3d.evaluation.report import write_run
+
+    rng = np.random.default_rng(0)
+    gallery = ["a", "b", "c"]
+    S = rng.normal(size=(6, 3)) + 3 * np.equal.outer(["a", "b", "c"] * 2, gallery)
+    for name in ("icp", "tuned"):
+        write_run(tmp_path / name, S, ["a", "b", "c"] * 2, [f"p{i}" for i in range(6)], gallery, {"method": "icp"},
+                  bootstrap=0)
+    result = compare_runs([tmp_path / "icp", tmp_path / "tuned"], tmp_path / "cmp")
+    assert [r["label"] for r in result["runs"]] == ["icp", "icp (tuned)"]
+    assert "icp (icp)" not in (tmp_path / "cmp" / "compare.md").read_text()
+
+
+def test_verify_hints_when_the_default_threshold_does_not_suit_the_sensor(run, frames, tmp_path):
+    """Item 8: a gallery of depth-camera faces (matched at ~3 mm) and the default threshold, chosen on 1 mm laser
+    faces: a hint says how to choose one. With --threshold, or on laser faces, no hint."""
+    out, _ = run
+    gallery, cache = str(tmp_path / "g.sqlite"), str(out.parent / "cache")
+    r = CliRunner().invoke(main, ["enroll", str(frames / "04201" / "front_1.png"), "--gallery", gallery,
+                                  "--subject", "04201", "--jobs", "1", "--cache", cache])
+    assert r.exit_code == 0, r.output
+    probe = str(frames / "04201" / "front_2.png")
+    r = CliRunner().invoke(main, ["verify", probe, "--gallery", gallery, "--claim", "04201", "--cache", cache])
+    assert "hint: the default threshold -1 was chosen on laser scans" in r.output and "threshold_at_eer" in r.output
+    r = CliRunner().invoke(main, ["verify", probe, "--gallery", gallery, "--claim", "04201", "--cache", cache,
+                                  "--threshold", "-20"])
+    assert r.exit_code == 0 and "hint" not in r.output
+
+    from facerec3d.datasets.frontal import frontal_face
+    from facerec3d.io import save_scan
+
+    laser = tmp_path / "laser"
+    laser.mkdir()
+    save_scan(frontal_face(1), laser / "s1.npz")
+    save_scan(frontal_face(1, pose_deg=2.0, noise_mm=0.2, seed=3), laser / "s1-probe.npz")
+    g2 = str(tmp_path / "laser.sqlite")
+    r = CliRunner().invoke(main, ["enroll", str(laser / "s1.npz"), "--gallery", g2, "--subject", "s1", "--jobs", "1",
+                                  "--cache", cache])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(main, ["verify", str(laser / "s1-probe.npz"), "--gallery", g2, "--claim", "s1",
+                                  "--cache", cache])
+    assert r.output.startswith("accept") and "hint" not in r.output
+
+
+def test_the_service_takes_intrinsics_as_a_file_part_or_text(frames, tmp_path):
+    """Item 7: `curl -F scan=@front_1.png -F intrinsics=@intrinsics.json` as well as `-F intrinsics="$(cat ...)"`."""
+    pytest.importorskip("fastapi")
+    from fastapi.testclient import TestClient
+
+    from facerec3d.server.app import Service, ServiceSettings, create_app
+    from facerec3d.server.keys import KeyFile, add_key
+    from facerec3d.server.live import LiveGallery
+
+    key = add_key(tmp_path / "keys.json", "gate", "enrol,query")
+    live = LiveGallery(tmp_path / "g.sqlite", jobs=1)
+    service = Service(live, KeyFile(tmp_path / "keys.json"), ServiceSettings())
+    camera = (frames / "intrinsics.json").read_bytes()
+    try:
+        client = TestClient(create_app(service))
+        headers = {"X-API-Key": key}
+        scan = (frames / "04202" / "front_1.png").read_bytes()
+        r = client.post("/v1/enrol", headers=headers, data={"subject": "04202"},
+                        files={"scan": ("front_1.png", scan), "intrinsics": ("intrinsics.json", camera)})
+        assert r.status_code == 201, r.text
+        probe = (frames / "04202" / "front_2.png").read_bytes()
+        r = client.post("/v1/identify", headers=headers, data={"intrinsics": camera.decode()},
+                        files={"probe": ("front_2.png", probe)})
+        assert r.status_code == 200 and r.json()["candidates"][0]["subject"] == "04202", r.text
+        r = client.post("/v1/identify", headers=headers,
+                        files={"probe": ("front_2.png", probe), "intrinsics": ("intrinsics.json", b"{fx: 1")})
+        assert r.status_code == 422 and "not JSON" in r.json()["error"]
+    finally:
+        service.close()
+
+
+def test_a_manifest_of_bosphorus_files_is_read_as_the_bosphorus_folder_would_be(tmp_path):
+    """The protocol and subsets of synthetic Bosphorus data do not depend on its manifest.csv being there."""
+    from facerec3d.datasets.catalog import open_dataset
+    from facerec3d.datasets.protocols import split
+    from facerec3d.datasets.synthetic import ScannerConfig
+
+    write_dataset(tmp_path, DatasetConfig(subjects=2, scans=4, seed=1, scanner=ScannerConfig(rows=120, cols=160,
+                                                                                             focal_px=360.0)), "bnt")
+    through_manifest = split(open_dataset(tmp_path))
+    (tmp_path / "manifest.csv").unlink()
+    folder = split(open_dataset(tmp_path))
+    assert through_manifest.protocol == folder.protocol == "bosphorus"
+    assert {k: len(v) for k, v in through_manifest.subsets.items() if not k.startswith("pose:")} == \
+        {k: len(v) for k, v in folder.subsets.items()}
+    assert len(through_manifest.subsets) > 3  # neutral, non-neutral and the Bosphorus types
