@@ -1,6 +1,6 @@
 """Which method should be the default? Every candidate on every kind of data at once, not on one tuning half.
 
-    python benchmarks/default_bench.py [--methods icp,region-icp,fusion=examples/fusion-icp-region.toml]
+    python benchmarks/default_bench.py [--methods icp,region-icp,fusion]
         [--subjects 20] [--scans 4] [--real runs/real/real_bench.json] [--data bench-out/default] [--jobs 2]
 
 Synthetic sets (FRGC layout, written once under --data, then reused), each `--subjects` x `--scans` (the first
@@ -13,8 +13,8 @@ Real data: `--real` names the `real_bench.json` of a `python benchmarks/real_ben
 same candidates (their labels must match); its held-out-half rank-1 over all probes joins the table. Without it
 the real column is left out, and the table says so: a default chosen without real data is a guess.
 
-The table gives rank-1 over all probes (failures count as misses) per set, then the mean and the worst over the
-sets; the suggested default is the best mean among those whose worst is within 5 points of the best worst.
+Two tables: rank-1 over all probes (failures count as misses) and the EER, per set, with the mean and the worst
+over the sets. No rule picks the default for you: the docs (docs/methods.md) say which was chosen and why.
 """
 
 from __future__ import annotations
@@ -45,9 +45,19 @@ def method_specs(text: str) -> list[tuple[str, str, dict | None]]:
     return out
 
 
+def render(values: dict[str, dict[str, float]], columns: list[str], worst) -> list[str]:
+    """A markdown table: one row per method, one column per set, then the mean and the worst (min or max)."""
+    lines = ["| method | " + " | ".join(columns) + " | mean | worst |", "|---" * (len(columns) + 3) + "|"]
+    for label, row in values.items():
+        got = [row[c] for c in columns if c in row]
+        cells = [f"{100 * row[c]:.1f}" if c in row else "–" for c in columns]
+        lines.append(f"| {label} | " + " | ".join(cells) + f" | {100 * sum(got) / len(got):.1f} | {100 * worst(got):.1f} |")
+    return lines
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--methods", default="icp,region-icp,fusion=examples/fusion-icp-region.toml")
+    ap.add_argument("--methods", default="icp,region-icp,fusion")
     ap.add_argument("--sets", default=",".join(SETS), help=f"of {', '.join(SETS)}")
     ap.add_argument("--subjects", type=int, default=20)
     ap.add_argument("--scans", type=int, default=4)
@@ -57,6 +67,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     specs = method_specs(args.methods)
     table: dict[str, dict[str, float]] = {label: {} for label, _, _ in specs}
+    eers: dict[str, dict[str, float]] = {label: {} for label, _, _ in specs}
     for name in filter(None, args.sets.split(",")):
         sensor, identities = SETS[name]
         root = args.data / f"{name}-{args.subjects}x{args.scans}"
@@ -67,7 +78,7 @@ def main(argv=None) -> int:
         for label, method, options in specs:
             m = evaluate(root, method=method, options=options, out=args.data / "runs" / name / label.replace(":", "-"),
                          jobs=args.jobs, cache=args.data / "cache", progress=False, bootstrap=0)
-            table[label][name] = m["rank1_all"]
+            table[label][name], eers[label][name] = m["rank1_all"], m["eer"]
             print(f"{name:18s} {label:28s} rank-1 all {100 * m['rank1_all']:5.1f} %  EER {100 * m['eer']:5.1f} %",
                   flush=True)
     if args.real:
@@ -75,19 +86,11 @@ def main(argv=None) -> int:
         for label in table:
             if label in real:
                 table[label]["rap3df held-out"] = real[label]["rank1_all"]
+                eers[label]["rap3df held-out"] = real[label]["eer"]
     columns = sorted({c for row in table.values() for c in row}, key=lambda c: (c != "rap3df held-out", c))
-    lines = ["| method | " + " | ".join(columns) + " | mean | worst |", "|---" * (len(columns) + 3) + "|"]
-    summary = {}
-    for label, row in table.items():
-        values = [row[c] for c in columns if c in row]
-        summary[label] = (sum(values) / len(values), min(values))
-        cells = [f"{100 * row[c]:.1f}" if c in row else "–" for c in columns]
-        lines.append(f"| {label} | " + " | ".join(cells) + f" | {100 * summary[label][0]:.1f} | {100 * summary[label][1]:.1f} |")
-    best_worst = max(w for _, w in summary.values())
-    choice = max((label for label, (_, w) in summary.items() if w >= best_worst - 0.05), key=lambda k: summary[k][0])
-    print("\nRank-1 over all probes (%)" + ("" if args.real else " — NO REAL DATA: give --real"))
-    print("\n".join(lines))
-    print(f"\nsuggested default: {choice} (best mean among those whose worst set is within 5 points of the best worst)")
+    print("\nNO REAL DATA: give --real (a default chosen without real data is a guess)" if not args.real else "")
+    for title, values, worst in (("Rank-1 over all probes (%)", table, min), ("EER (%)", eers, max)):
+        print(f"\n{title}\n" + "\n".join(render(values, columns, worst)))
     return 0
 
 

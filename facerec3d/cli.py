@@ -560,7 +560,7 @@ def verify(probe, gallery, claim, threshold, config_file, cache, server, api_key
     with _one_blas_thread(), GalleryStore(gallery) as store:
         accepted, score, threshold = verify_scan(store, probe, claim, threshold=threshold, config=config,
                                                  cache=_cache_folder(cache))
-        hint = None if given else _threshold_hint(store, claim, threshold)
+        hint = None if given or store.threshold() is not None else _threshold_hint(store, claim, threshold)
     click.echo(f"{'accept' if accepted else 'reject'}: claim {claim}, score {score:.4f} (threshold {threshold:g})")
     if hint:
         click.echo(hint, err=True)
@@ -581,9 +581,10 @@ def _threshold_hint(store, claim: str, threshold: float) -> str | None:
     if not resolutions or max(resolutions) <= DEFAULT_THRESHOLD_RESOLUTION_MM:
         return None
     return (f"hint: the default threshold {threshold:g} was chosen on laser scans matched at 1 mm; this gallery's faces "
-            f"are matched at {max(resolutions):.1f} mm (a depth camera's), where genuine scores are lower: choose "
-            "--threshold from an evaluation on this sensor's scans (metrics.json: threshold_at_eer, "
-            "threshold_at_far_0.001; see the depth-camera quick start in the docs)")
+            f"are matched at {max(resolutions):.1f} mm (a depth camera's), where genuine scores are lower: calibrate the "
+            "gallery's own ('facerec3d gallery STORE calibrate SCANS') or choose --threshold from an evaluation on "
+            "this sensor's scans (metrics.json: threshold_at_eer, threshold_at_far_0.001; see the depth-camera quick "
+            "start in the docs)")
 
 
 class _GalleryGroup(click.Group):
@@ -858,17 +859,22 @@ _CACHE_DIR_OPTION = click.option("--cache", "folder", type=click.Path(file_okay=
                                  help="The cache folder [default: the user's, shown by info].")
 
 
+def _cache_contents(folder: str | None) -> tuple[Path, list[Path], int]:
+    """(the cache folder: --cache or the default, its entries, their bytes)."""
+    from facerec3d.preprocess.batch import DEFAULT_CACHE, cache_entries
+
+    folder = Path(folder) if folder else DEFAULT_CACHE
+    entries = cache_entries(folder)
+    return folder, entries, sum(p.stat().st_size for p in entries)
+
+
 @cache.command("info")
 @_CACHE_DIR_OPTION
 @friendly
 def cache_info(folder):
     """Where the cache is, how many faces and failures it holds and its size."""
-    from facerec3d.preprocess.batch import DEFAULT_CACHE, cache_entries
-
-    folder = Path(folder) if folder else DEFAULT_CACHE
-    entries = cache_entries(folder)
+    folder, entries, size = _cache_contents(folder)
     faces = sum(p.suffix == ".npz" for p in entries)
-    size = sum(p.stat().st_size for p in entries)
     click.echo(f"{folder}{'' if folder.is_dir() else ' (not made yet)'}: {faces} faces, {len(entries) - faces} "
                f"failures, {size / 2**20:.1f} MiB")
 
@@ -878,11 +884,7 @@ def cache_info(folder):
 @friendly
 def cache_clear(folder):
     """Remove the cache's entries (other files in the folder stay)."""
-    from facerec3d.preprocess.batch import DEFAULT_CACHE, cache_entries
-
-    folder = Path(folder) if folder else DEFAULT_CACHE
-    entries = cache_entries(folder)
-    size = sum(p.stat().st_size for p in entries)
+    folder, entries, size = _cache_contents(folder)
     for path in entries:
         path.unlink(missing_ok=True)
     click.echo(f"removed {len(entries)} entries ({size / 2**20:.1f} MiB) from {folder}")

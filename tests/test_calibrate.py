@@ -9,7 +9,7 @@ from click.testing import CliRunner
 
 from facerec3d.cli import main
 from facerec3d.datasets.synthetic import DatasetConfig, sensor_profile, write_dataset
-from facerec3d.evaluation.calibrate import calibrate, calibration_scores, gallery_records
+from facerec3d.evaluation.calibrate import calibrate, calibration_scores, gallery_records, threshold_at_fmr
 from facerec3d.evaluation.metrics import eer, roc
 from facerec3d.gallery.engine import Engine
 from facerec3d.gallery.service import DEFAULT_THRESHOLDS, enroll_scans, gallery_threshold, scan_records, verify_scan
@@ -75,7 +75,7 @@ def test_calibration_needs_impostors_and_genuine_pairs_for_the_eer(tmp_path, kin
         with pytest.raises(GalleryError, match="no impostor pair"):
             calibrate(store, None, engine=engine)
         with pytest.raises(GalleryError, match="no calibrated verification threshold"):
-            gallery_threshold(store, "fusion")  # a method without a default
+            gallery_threshold(store, "region-icp")  # a method without a default
 
 
 def test_cli_enroll_calibrates_and_stats_show_it(kinect, tmp_path):
@@ -94,3 +94,25 @@ def test_cli_enroll_calibrates_and_stats_show_it(kinect, tmp_path):
     with GalleryStore(g) as store, Engine.create(1) as engine:
         _, impostor, _ = calibration_scores(store, gallery_records(store), engine=engine)
         assert impostor.max() < store.threshold()["value"] == pytest.approx(impostor.max())  # no impostor accepted
+
+
+def test_threshold_at_fmr_counts_impostors_and_ties():
+    imp = np.array([5.0, 4.0, 4.0, 3.0, 2.0, 1.0, 0.0, -1.0, -2.0, -3.0])
+    assert threshold_at_fmr(imp, 0.1) == 5.0  # one impostor of ten accepted
+    t = threshold_at_fmr(imp, 0.2)  # 4.0 would accept three: just above it, one
+    assert 4.0 < t < 5.0 and np.mean(imp >= t) <= 0.2
+    assert threshold_at_fmr(imp, 0.3) == 4.0
+    assert 5.0 < threshold_at_fmr(imp, 0.01) < 5.0 + 1e-9  # fewer than one allowed: above them all
+
+
+def test_a_gallery_of_one_scan_per_person_calibrates_on_impostors_alone(kinect, tmp_path):
+    firsts = {}
+    for r in scan_records([kinect]):
+        firsts.setdefault(r.subject, r)
+    path = tmp_path / "firsts.sqlite"
+    with GalleryStore(path, create=True) as store, Engine.create(1) as engine:
+        enroll_scans(store, list(firsts.values()), make_matcher("icp"), engine=engine)
+        record = calibrate(store, None, fmr=0.05, engine=engine)
+        _, impostor, _ = calibration_scores(store, gallery_records(store), engine=engine)
+    assert record["genuine_pairs"] == 0 and record["impostor_pairs"] == impostor.size == 20
+    assert record["value"] == threshold_at_fmr(impostor, 0.05) and record["fmr"] <= 0.05

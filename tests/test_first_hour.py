@@ -213,7 +213,7 @@ def test_verify_hints_when_the_default_threshold_does_not_suit_the_sensor(run, f
     out, _ = run
     gallery, cache = str(tmp_path / "g.sqlite"), str(out.parent / "cache")
     r = CliRunner().invoke(main, ["enroll", str(frames / "04201" / "front_1.png"), "--gallery", gallery,
-                                  "--subject", "04201", "--jobs", "1", "--cache", cache])
+                                  "--subject", "04201", "--method", "icp", "--jobs", "1", "--cache", cache])
     assert r.exit_code == 0, r.output
     probe = str(frames / "04201" / "front_2.png")
     r = CliRunner().invoke(main, ["verify", probe, "--gallery", gallery, "--claim", "04201", "--cache", cache])
@@ -230,8 +230,8 @@ def test_verify_hints_when_the_default_threshold_does_not_suit_the_sensor(run, f
     save_scan(frontal_face(1), laser / "s1.npz")
     save_scan(frontal_face(1, pose_deg=2.0, noise_mm=0.2, seed=3), laser / "s1-probe.npz")
     g2 = str(tmp_path / "laser.sqlite")
-    r = CliRunner().invoke(main, ["enroll", str(laser / "s1.npz"), "--gallery", g2, "--subject", "s1", "--jobs", "1",
-                                  "--cache", cache])
+    r = CliRunner().invoke(main, ["enroll", str(laser / "s1.npz"), "--gallery", g2, "--subject", "s1", "--method",
+                                  "icp", "--jobs", "1", "--cache", cache])
     assert r.exit_code == 0, r.output
     r = CliRunner().invoke(main, ["verify", str(laser / "s1-probe.npz"), "--gallery", g2, "--claim", "s1",
                                   "--cache", cache])

@@ -25,7 +25,7 @@ import numpy as np
 from facerec3d.datasets.catalog import ScanRecord
 from facerec3d.gallery.engine import Engine
 from facerec3d.gallery.store import GalleryError, GalleryStore
-from facerec3d.evaluation.metrics import _eer, _operating_point, roc
+from facerec3d.evaluation.metrics import _eer, roc
 
 DEFAULT_FMR = 0.01  # the false-match rate the recorded threshold keeps (1 %: one impostor in a hundred accepted)
 MAX_SCANS = 100  # calibration scans scored against the gallery at the most (an even selection of them)
@@ -37,10 +37,20 @@ def gallery_records(store: GalleryStore) -> list[ScanRecord]:
             if Path(e.source).is_file()]
 
 
+def _scores_without(matcher, face, templates, keep: np.ndarray) -> np.ndarray:
+    """The face's scores against the templates where `keep` (NaN elsewhere), normalised over those alone."""
+    scores = np.full(len(templates), np.nan)
+    if keep.any():
+        scores[keep] = matcher.scores(matcher.prepare(face), [t for t, k in zip(templates, keep) if k])[0]
+    return scores
+
+
 def calibration_scores(store: GalleryStore, records: Sequence[ScanRecord], *, engine: Engine,
                        cache: str | Path | None = None, max_scans: int = MAX_SCANS) -> tuple[np.ndarray, np.ndarray, int]:
     """(genuine scores, impostor scores, scans that failed to acquire) of up to `max_scans` labelled scans against
-    every entry of the gallery, leaving out each scan's own entry (same source file)."""
+    every entry of the gallery, leaving out each scan's own entry (same source file). A method whose scores are
+    normalised over the gallery (fusion, region ICP) scores each scan against the gallery without its own entry,
+    as a probe from outside it would be (in this process); others on the engine's workers."""
     if len(records) > max_scans:
         records = [records[i] for i in np.linspace(0, len(records) - 1, max_scans).round().astype(int)]
     matcher, entries = store.matcher(), store.entries()
@@ -51,20 +61,36 @@ def calibration_scores(store: GalleryStore, records: Sequence[ScanRecord], *, en
     genuine: list[float] = []
     impostor: list[float] = []
     if kept:
-        gallery = engine.load(matcher, store.templates(entries))
-        try:
-            results = gallery.scores(engine.prepare(matcher, [f for _, f in kept]))
-        finally:
-            gallery.release()
         subjects = np.array([str(e.subject) for e in entries])
         sources = np.array([str(Path(e.source).resolve()) for e in entries])
-        for (record, _), result in zip(kept, results):
-            other = sources != str(Path(record.path).resolve())
+        others = [sources != str(Path(r.path).resolve()) for r, _ in kept]
+        templates = store.templates(entries)
+        if matcher.cohort_scores:  # normalised over the gallery: scored without its own entry, as a new probe is
+            results = [_scores_without(matcher, face, templates, other) for (_, face), other in zip(kept, others)]
+        else:
+            gallery = engine.load(matcher, templates)
+            try:
+                results = [np.asarray(r.scores, dtype=np.float64)
+                           for r in gallery.scores(engine.prepare(matcher, [f for _, f in kept]))]
+            finally:
+                gallery.release()
+        for (record, _), other, scores in zip(kept, others, results):
             same = subjects == str(record.subject)
-            scores = np.asarray(result.scores, dtype=np.float64)
             genuine += scores[other & same].tolist()
             impostor += scores[other & ~same].tolist()
     return np.array(genuine), np.array(impostor), len(records) - len(kept)
+
+
+def threshold_at_fmr(impostor: np.ndarray, fmr: float) -> float:
+    """The lowest threshold (accept score >= t) at which at most `fmr` of the impostor scores are accepted: the
+    k-th highest impostor score, k = ⌊fmr · n⌋, or just above it where ties would accept more (just above the
+    highest when k = 0). Needs no genuine score."""
+    ranked = np.sort(np.asarray(impostor, dtype=np.float64))[::-1]
+    k = int(np.floor(fmr * ranked.size + 1e-9))
+    if k == 0:
+        return float(np.nextafter(ranked[0], np.inf))
+    t = ranked[k - 1]
+    return float(t if np.sum(ranked >= t) <= k else np.nextafter(t, np.inf))
 
 
 def calibrate(store: GalleryStore, records: Sequence[ScanRecord] | None = None, *, fmr: float | None = DEFAULT_FMR,
@@ -81,13 +107,14 @@ def calibrate(store: GalleryStore, records: Sequence[ScanRecord] | None = None, 
     if fmr is None and genuine.size == 0:
         raise GalleryError(f"{store.path}: the equal error rate needs genuine pairs (a second scan of some enrolled "
                            "subjects); give them, or calibrate at a false-match rate")
-    fmrs, tars, thresholds = roc(genuine, impostor)
     rule = "eer" if fmr is None else f"fmr={fmr:g}"
-    if fmr is not None and fmr * impostor.size < 1:  # too few pairs to resolve the rate: just above every impostor
-        value = float(np.nextafter(np.max(impostor), np.inf))
-        rule += f" (too few impostor pairs: just above the highest of {impostor.size})"
+    if fmr is None:
+        fmrs, tars, thresholds = roc(genuine, impostor)
+        value = float(thresholds[_eer(fmrs, tars)[1]])
     else:
-        value = float(thresholds[_eer(fmrs, tars)[1] if fmr is None else _operating_point(fmrs, tars, fmr)])
+        value = threshold_at_fmr(impostor, fmr)
+        if fmr * impostor.size < 1:
+            rule += f" (too few impostor pairs: just above the highest of {impostor.size})"
     if not np.isfinite(value):  # no impostor matched at all (-inf): accept any finite score
         finite = np.r_[genuine, impostor][np.isfinite(np.r_[genuine, impostor])]
         value = float(np.min(finite, initial=0.0))
@@ -98,6 +125,6 @@ def calibrate(store: GalleryStore, records: Sequence[ScanRecord] | None = None, 
               "calibrated_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     if genuine.size:
         record["tar"] = float(np.mean(genuine >= value))
-        record["eer"] = float(_eer(fmrs, tars)[0])
+        record["eer"] = float(_eer(*roc(genuine, impostor)[:2])[0])
     store.set_threshold(record)
     return record
