@@ -1,4 +1,8 @@
-"""Expression handling by masking (chapter §8.10.3): where does an expression move the face?
+"""Expression handling (chapter §8.10.3): masking where expressions move the face, and the expression deformation
+model of Al-Osaimi, Bennamoun & Mian (IJCV 2009, `ResidueModel`; used by the afm matcher, `afm.py`, which also
+removes the fitted blendshapes instead).
+
+Masking: where does an expression move the face?
 
 The morphable model's 53 ARKit expression blendshapes (ICT-FaceKit,
 `facerec3d.facemodel`) give each vertex's displacement at full weight.

@@ -63,8 +63,8 @@ class GeometryImageConfig:
 
     size: int = 64  # cells per side (a power of two for the Haar pyramid)
     cell_mm: float = 2.0  # on the mean face: 64 × 2 mm spans 128 mm, eyebrows to chin, cheek to cheek
-    centre_mm: tuple[float, float] = (0.0, -8.0)  # x, y of the grid's centre on the mean face (nose tip at the
-    #   origin): y from −72 (chin) to +56 mm (forehead)
+    top_mm: float = 56.0  # y of the top row's centres on the mean face (nose tip at the origin), mm: the grid spans
+    #   y from +56 (forehead) down to −70 (above the chin) and x ±63 mm
     max_offset_mm: float = 10.0  # the scan's surface must lie this near the fitted surface along its normal, else the
     #   cell is missing (an occluder, hair, a hole): the outside-model faces of the generator stray ≤ 3 mm from the
     #   model's span, a hand or glasses 10 mm and more (datasets.synthetic.IDENTITY_PROFILES)
@@ -141,8 +141,7 @@ def uv_basis(config: GeometryImageConfig = GeometryImageConfig()) -> UVBasis:
     V = m.mean.astype(np.float64) - nose
     face_tris = m.triangles[(m.region[m.triangles] == 0).all(axis=1)].astype(np.int64)
     n, cell = config.size, config.cell_mm
-    x0 = config.centre_mm[0] - (n - 1) / 2 * cell
-    y0 = config.centre_mm[1] + (n - 1) / 2 * cell
+    x0, y0 = -(n - 1) / 2 * cell, config.top_mm
     tri, bary = _front_triangles(V, face_tris, x0, y0, cell, n)
     tri, bary = tri.ravel(), bary.reshape(-1, 3)
     inside = tri >= 0
