@@ -195,3 +195,43 @@ def test_cli_enroll_identify_verify_with_afm_and_morph_id(tmp_path):
     r = run.invoke(main, ["verify", str(probe), "--gallery", str(tmp_path / "afm.sqlite"), "--claim", other,
                           "--threshold", threshold, "--cache", cache])
     assert r.exit_code == 1 and r.output.startswith("reject"), r.output
+
+
+def test_the_service_enrols_and_identifies_with_afm(tmp_path):
+    """The service (in process, one worker) enrols a raw scan with afm and identifies a probe of the same person
+    (with another expression) first."""
+    pytest.importorskip("fastapi")
+    from fastapi.testclient import TestClient
+
+    from facerec3d.datasets.frontal import frontal_face
+    from facerec3d.io import save_scan
+    from facerec3d.server.app import Service, ServiceSettings, create_app
+    from facerec3d.server.keys import KeyFile, add_key
+    from facerec3d.server.live import AuditLog, LiveGallery
+
+    gallery, keys = tmp_path / "g.sqlite", tmp_path / "keys.json"
+    with GalleryStore(gallery, create=True) as store:
+        store.bind(PreprocessConfig(), AFMMatcher())
+    key = add_key(keys, "alice", "enrol,query,admin")
+    scans = {}
+    for s, e in ((0, "neutral"), (1, "neutral"), (2, "neutral"), (1, "smile")):
+        scans[(s, e)] = tmp_path / f"{s}-{e}.npz"
+        save_scan(frontal_face(s, pose_deg=3.0, shift_mm=3.0, noise_mm=0.2, seed=s, expression=e), scans[(s, e)])
+    live = LiveGallery(gallery, 1, audit=AuditLog(None))
+    service = Service(live, KeyFile(keys), ServiceSettings(timeout_s=300))
+    try:
+        with TestClient(create_app(service)) as client:
+            h = {"X-API-Key": key}
+            for s in (0, 1, 2):
+                path = scans[(s, "neutral")]
+                r = client.post("/v1/enrol", headers=h, files={"scan": (path.name, path.read_bytes())},
+                                data={"subject": f"s{s}"})
+                assert r.status_code == 201, r.text
+            probe = scans[(1, "smile")]
+            r = client.post("/v1/identify", headers=h, files={"probe": (probe.name, probe.read_bytes())},
+                            data={"k": "3"})
+            assert r.status_code == 200, r.text
+            assert [c["subject"] for c in r.json()["candidates"]][0] == "s1"
+            assert r.json()["candidates"][0]["score"] > r.json()["candidates"][1]["score"]
+    finally:
+        service.close()
