@@ -16,14 +16,16 @@ Distance: the RMS difference of the coefficients both faces have, d² = Σ m_p m
 (orthonormal Haar: mm). Expanded, d² is linear in the gallery's [m, m·c, m·‖c‖²], so a probe is scored against a
 whole gallery by one matrix product (`scores`): about a microsecond per comparison. The score is −d (mm).
 
-Expression handling (`expression`, §8.10.3), to compare with each other:
+Expression handling (`expression`, §8.10.3), to compare with each other and with masking (`mask_mobility_mm`:
+points that some expression moves more than that are missing, as in region ICP's rigid region):
 * "none": the geometry image as seen;
-* "mask": points that some expression moves more than `mobility_mm` are missing (the masking region ICP uses);
 * "blendshapes": the fitted expression's blendshape displacements are subtracted from the geometry image, so the
   face is compared as if neutral (model-based removal, cf. Amberg, Knothe & Vetter, FG 2008);
 * "residue": Al-Osaimi, Bennamoun & Mian's expression deformation model (IJCV 2009; chapter eqs. 8.46–8.47),
   learnt from the residues between neutral and non-neutral scans of training subjects (`--train`): the
-  probe–gallery residue is scored by the part of it the model cannot reconstruct (`expression.ResidueModel`).
+  probe–gallery residue is scored by the part of it the model cannot reconstruct (`expression.ResidueModel`);
+* "blendshapes+residue": both, the residue model learnt on geometry images with the blendshapes removed (it
+  learns what the removal leaves).
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ from facerec3d.matching.expression import ResidueConfig, ResidueModel
 from facerec3d.matching.morphable import GeometryImageConfig, face_fit, geometry_image, uv_basis
 from facerec3d.scan import FaceScan
 
-EXPRESSION_HANDLING = ("none", "mask", "blendshapes", "residue")
+EXPRESSION_HANDLING = ("none", "blendshapes", "residue", "blendshapes+residue")
 
 
 def haar_pyramid(images: np.ndarray, valid: np.ndarray, levels: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -70,9 +72,9 @@ class AFMConfig:
     image: GeometryImageConfig = field(default_factory=GeometryImageConfig)  # UV grid and sampling
     levels: int = 3  # Haar levels: 64 → 32 → 16 → 8 (the 8 × 8 approximation covers 16 mm cells)
     drop_finest: int = 1  # finest detail levels left out (2 mm-scale noise): 3 × 1,024 coefficients remain
-    expression: str = "blendshapes"  # "none", "mask", "blendshapes" or "residue" (module docstring)
-    mobility_mm: float = 4.0  # "mask": leave out points an expression moves more than this, as region ICP's rigid
-    #                           region (regions.RegionConfig.rigid_mobility)
+    expression: str = "blendshapes"  # one of EXPRESSION_HANDLING (module docstring)
+    mask_mobility_mm: float | None = None  # leave out points some expression moves more than this (mm; None: keep
+    #   all). 4 mm is region ICP's rigid region (regions.RegionConfig.rigid_mobility), today's masking
     residue: ResidueConfig = field(default_factory=ResidueConfig)  # "residue": the expression deformation model
 
     def __post_init__(self) -> None:
@@ -95,7 +97,7 @@ class AFMMatcher(Matcher[Template]):
 
     @property
     def needs_training(self) -> bool:
-        return self.config.expression == "residue"
+        return self.config.expression.endswith("residue")
 
     # ------------------------------------------------------------------------------------------ features
     def coefficients(self, scan: FaceScan) -> tuple[np.ndarray, np.ndarray]:
@@ -108,10 +110,10 @@ class AFMMatcher(Matcher[Template]):
         basis = uv_basis(cfg.image)
         points = g.points - basis.mean.reshape(n, n, 3)
         valid = g.valid
-        if cfg.expression == "blendshapes":
+        if cfg.expression.startswith("blendshapes"):
             points = points - g.expression
-        elif cfg.expression == "mask":
-            valid = valid & (basis.mobility.reshape(n, n) <= cfg.mobility_mm)
+        if cfg.mask_mobility_mm is not None:
+            valid = valid & (basis.mobility.reshape(n, n) <= cfg.mask_mobility_mm)
         bands = haar_pyramid(points.transpose(2, 0, 1), valid, cfg.levels)[cfg.drop_finest:]
         c = np.concatenate([b.reshape(3, -1) for b, _ in bands], axis=1)  # (3, k)
         m = np.concatenate([np.broadcast_to(ok, b.shape[1:]).reshape(-1) for b, ok in bands])
@@ -125,7 +127,7 @@ class AFMMatcher(Matcher[Template]):
     def fit(self, scans: Sequence[FaceScan], subjects: Sequence[str]) -> AFMMatcher:
         """"residue": learn the expression deformation model from the training subjects' scans (each subject's
         neutral scan against its others; `expression.ResidueModel.learn`); the other handlings learn nothing."""
-        if self.config.expression != "residue":
+        if not self.needs_training:
             return self
         coeffs = [self.coefficients(s) for s in scans]
         energy = [float(np.linalg.norm(face_fit(s).expression)) for s in scans]
@@ -159,10 +161,10 @@ class AFMMatcher(Matcher[Template]):
 
     def distances(self, probe: Template, templates: Sequence[Template]) -> np.ndarray:
         """(n,) RMS coefficient difference (mm) over the coefficients both have; +inf where they share none."""
-        if self.config.expression == "residue":
+        if self.needs_training:
             if self.residue_ is None:
-                raise RuntimeError("the afm matcher with expression = 'residue' is not trained: call fit() or load "
-                                   "a model")
+                raise RuntimeError(f"the afm matcher with expression = {self.config.expression!r} is not trained: "
+                                   "call fit() or load a model")
             return self.residue_.errors(probe.arrays["coefficients"], probe.arrays["valid"],
                                         np.stack([t.arrays["coefficients"] for t in templates]),
                                         np.stack([t.arrays["valid"] for t in templates]))
