@@ -235,3 +235,24 @@ def test_the_service_enrols_and_identifies_with_afm(tmp_path):
             assert r.json()["candidates"][0]["score"] > r.json()["candidates"][1]["score"]
     finally:
         service.close()
+
+
+def test_region_scores_ignore_an_occluded_region(faces):
+    """Scored by regions, averaging the nearest half, a probe with one region covered (coefficients moved 20 mm,
+    as an occluder would) stays as near its own face; the whole-face RMS grows several-fold."""
+    whole = AFMMatcher(AFMConfig(expression="none"))
+    by_region = AFMMatcher(AFMConfig(expression="none", regions=4, keep_regions=0.5))
+    for m in (whole, by_region):
+        gallery = [m.enroll(faces[(s, "neutral")]) for s in SUBJECTS]
+        probe = m.prepare(faces[(1, "neutral")])
+        probe.arrays["coefficients"] = probe.arrays["coefficients"] + 0.05  # a little noise-like offset
+        before = m.distances(probe, gallery)
+        c = probe.arrays["coefficients"].reshape(3, 16, -1).copy()
+        c[:, 5] += 20.0  # region 5 (second row, second column) covered
+        covered = Template(None, None, "afm", {"coefficients": c.reshape(-1), "valid": probe.arrays["valid"]})
+        after = m.distances(covered, gallery)
+        assert np.argmin(before) == 1
+        if m is whole:
+            assert after[1] > 5 * before[1]
+        else:
+            assert np.argmin(after) == 1 and after[1] == pytest.approx(before[1], rel=0.05)

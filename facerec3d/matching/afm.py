@@ -76,12 +76,20 @@ class AFMConfig:
     mask_mobility_mm: float | None = None  # leave out points some expression moves more than this (mm; None: keep
     #   all). 4 mm is region ICP's rigid region (regions.RegionConfig.rigid_mobility), today's masking
     residue: ResidueConfig = field(default_factory=ResidueConfig)  # "residue": the expression deformation model
+    regions: int = 1  # the UV square is cut into regions × regions squares, each scored on its own (1: one score)
+    keep_regions: float = 1.0  # the score averages the best (nearest) share of the regions the two faces share, so
+    #   an occluder or a badly removed expression in a few regions does not decide (Kakadiaris et al. weight the
+    #   annotated regions; region ICP, §8.10.1, fuses regions for the same reason)
 
     def __post_init__(self) -> None:
         if self.expression not in EXPRESSION_HANDLING:
             raise ValueError(f"unknown expression handling {self.expression!r}: use one of {EXPRESSION_HANDLING}")
         if not 1 <= self.levels or 2**self.levels > self.image.size or not 0 <= self.drop_finest < self.levels:
             raise ValueError("need 1 ≤ levels, 2**levels ≤ image.size and 0 ≤ drop_finest < levels")
+        if self.regions < 1 or (self.image.size >> self.levels) % self.regions:
+            raise ValueError("regions must be ≥ 1 and divide the coarsest band (image.size / 2**levels)")
+        if not 0 < self.keep_regions <= 1:
+            raise ValueError("keep_regions must be in (0, 1]")
 
 
 class AFMMatcher(Matcher[Template]):
@@ -117,7 +125,21 @@ class AFMMatcher(Matcher[Template]):
         bands = haar_pyramid(points.transpose(2, 0, 1), valid, cfg.levels)[cfg.drop_finest:]
         c = np.concatenate([b.reshape(3, -1) for b, _ in bands], axis=1)  # (3, k)
         m = np.concatenate([np.broadcast_to(ok, b.shape[1:]).reshape(-1) for b, ok in bands])
-        return c.reshape(-1).astype(np.float32), m
+        order = self._region_order()
+        return c[:, order].reshape(-1).astype(np.float32), m[order]
+
+    def _region_order(self) -> np.ndarray:
+        """(k,) the coefficients ordered region by region (regions × regions squares of the UV grid, row-major),
+        each region holding the same number of coefficients."""
+        cfg = self.config
+        n, r = cfg.image.size, cfg.regions
+        labels = []
+        for level in range(cfg.drop_finest + 1, cfg.levels + 2):
+            h = n >> min(level, cfg.levels)
+            i, j = np.mgrid[0:h, 0:h]
+            region = (i * r // h) * r + j * r // h
+            labels.append(np.tile(region.ravel(), 3 if level <= cfg.levels else 1))
+        return np.argsort(np.concatenate(labels), kind="stable")
 
     def enroll(self, scan: FaceScan) -> Template:
         c, m = self.coefficients(scan)
@@ -146,21 +168,26 @@ class AFMMatcher(Matcher[Template]):
 
     # ------------------------------------------------------------------------------------------- scoring
     def _gallery(self, templates: Sequence[Template]) -> np.ndarray:
-        """(n, 5k) float32 rows [m, m·c (3k), m·‖c‖²] of the templates; the last gallery's is kept for reuse."""
+        """(regions², n, 5s) float32: per region of s coefficients, the templates' rows [m, m·c (3s), m·‖c‖²];
+        the last gallery's is kept for reuse."""
         key = tuple(templates)
         if self._stacked is not None and len(self._stacked[0]) == len(key) and all(
                 a is b for a, b in zip(self._stacked[0], key)):
             return self._stacked[1]
+        R = self.config.regions**2
         m = np.stack([t.arrays["valid"] for t in templates]).astype(np.float32)
         c = np.stack([t.arrays["coefficients"] for t in templates]).astype(np.float32)
-        k = m.shape[1]
-        c3 = c.reshape(len(c), 3, k) * m[:, None]
-        rows = np.concatenate([m, c3.reshape(len(c), -1), np.einsum("nck,nck->nk", c3, c3)], axis=1)
+        n, k = m.shape
+        c3 = c.reshape(n, 3, k) * m[:, None]
+        parts = [m.reshape(n, R, 1, -1), c3.reshape(n, 3, R, -1).transpose(0, 2, 1, 3),
+                 np.einsum("nck,nck->nk", c3, c3).reshape(n, R, 1, -1)]
+        rows = np.ascontiguousarray(np.concatenate(parts, axis=2).reshape(n, R, -1).transpose(1, 0, 2))
         self._stacked = (key, rows)
         return rows
 
     def distances(self, probe: Template, templates: Sequence[Template]) -> np.ndarray:
-        """(n,) RMS coefficient difference (mm) over the coefficients both have; +inf where they share none."""
+        """(n,) distances (mm): the RMS coefficient difference over the coefficients both faces have, per region,
+        averaged over the nearest `keep_regions` share of the regions they share; +inf where they share none."""
         if self.needs_training:
             if self.residue_ is None:
                 raise RuntimeError(f"the afm matcher with expression = {self.config.expression!r} is not trained: "
@@ -168,14 +195,24 @@ class AFMMatcher(Matcher[Template]):
             return self.residue_.errors(probe.arrays["coefficients"], probe.arrays["valid"],
                                         np.stack([t.arrays["coefficients"] for t in templates]),
                                         np.stack([t.arrays["valid"] for t in templates]))
-        G = self._gallery(templates)
-        m = probe.arrays["valid"].astype(np.float32)
-        c = probe.arrays["coefficients"].astype(np.float32).reshape(3, -1) * m
-        q = np.concatenate([np.einsum("ck,ck->k", c, c), -2 * c.reshape(-1), m])
-        num = (G @ q).astype(np.float64)  # two matrix-vector products (BLAS gemv): faster than one (n, 2) product
-        den = (G[:, : len(m)] @ m).astype(np.float64)
+        G = self._gallery(templates)  # (R, n, 5s)
+        R = G.shape[0]
+        m = probe.arrays["valid"].astype(np.float32).reshape(R, -1)
+        c = probe.arrays["coefficients"].astype(np.float32).reshape(3, R, -1) * m
+        q = np.concatenate([np.einsum("crs,crs->rs", c, c)[:, None], -2 * c.transpose(1, 0, 2), m[:, None]],
+                           axis=1).reshape(R, -1, 1)
+        num = np.matmul(G, q)[..., 0].astype(np.float64)  # (R, n): one matrix-vector product per region (BLAS)
+        den = np.matmul(G[:, :, : m.shape[1]], m[..., None])[..., 0].astype(np.float64)
         with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(den > 0, np.sqrt(np.maximum(num, 0.0) / np.maximum(den, 1.0)), np.inf)
+            d = np.where(den > 0, np.sqrt(np.maximum(num, 0.0) / np.maximum(den, 1.0)), np.inf)
+        if R == 1:
+            return d[0]
+        shared = np.isfinite(d).sum(axis=0)
+        keep = np.maximum(np.ceil(self.config.keep_regions * shared).astype(np.int64), 1)
+        nearest = np.sort(d, axis=0)  # the shared regions first, nearest first
+        best = np.cumsum(np.where(np.isfinite(nearest), nearest, 0.0), axis=0)
+        mean = best[np.minimum(keep, R) - 1, np.arange(d.shape[1])] / keep
+        return np.where(shared > 0, mean, np.inf)
 
     def scores(self, probe: FaceScan | Template, templates: Sequence[Template]) -> tuple[np.ndarray, None]:
         p = self._probe(probe)
