@@ -103,6 +103,10 @@ class AFMMatcher(Matcher[Template]):
         self.residue_: ResidueModel | None = None
         self._stacked: tuple[tuple[Template, ...], np.ndarray] | None = None
 
+    def __getstate__(self) -> dict:
+        """Pickled (sent to worker processes) without the stacked gallery it keeps for reuse."""
+        return {**self.__dict__, "_stacked": None}
+
     @property
     def needs_training(self) -> bool:
         return self.config.expression.endswith("residue")
@@ -170,10 +174,9 @@ class AFMMatcher(Matcher[Template]):
     def _gallery(self, templates: Sequence[Template]) -> np.ndarray:
         """(regions², n, 5s) float32: per region of s coefficients, the templates' rows [m, m·c (3s), m·‖c‖²];
         the last gallery's is kept for reuse."""
-        key = tuple(templates)
-        if self._stacked is not None and len(self._stacked[0]) == len(key) and all(
-                a is b for a, b in zip(self._stacked[0], key)):
-            return self._stacked[1]
+        key, last = tuple(templates), self._stacked  # read once: threads may replace it meanwhile
+        if last is not None and len(last[0]) == len(key) and all(a is b for a, b in zip(last[0], key)):
+            return last[1]
         R = self.config.regions**2
         m = np.stack([t.arrays["valid"] for t in templates]).astype(np.float32)
         c = np.stack([t.arrays["coefficients"] for t in templates]).astype(np.float32)
