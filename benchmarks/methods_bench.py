@@ -1,13 +1,16 @@
 """Every matching method on the same synthetic protocol, side by side (chapter §8.6–8.10).
 
     python benchmarks/methods_bench.py [--subjects 60] [--scans 5] [--data bench-out/data] [--out bench-out/methods]
-        [--methods icp,pca,...,fusion=examples/fusion-icp-region.toml] [--jobs 2]
+        [--methods icp,pca,...,fusion=examples/fusion-icp-region.toml] [--jobs 2] [--identities model|outside-model]
 
 Three synthetic datasets (FRGC layout, made once under --data, then reused):
 `testN` (mixed expressions at 0.6–1.0 strength), `strongN` (the same
 subjects with open mouth, smile or surprise at full strength) and `trainN`
 (disjoint subjects, numbered from 1000, for the learnt methods: PCA, LDA
-and anything else whose `needs_training` is set). Each method is evaluated
+and anything else whose `needs_training` is set). `--identities outside-model`
+makes all three from faces outside the morphable model's span (wider identity
+spread, smooth deformations, occluders: `datasets.synthetic.IDENTITY_PROFILES`),
+named with an `-outside` suffix. Each method is evaluated
 on the test and the strong set; one `compare` report per set holds every
 method's metrics and timings. The table printed at the end gives rank-1
 (neutral / non-neutral probes), EER and the time of one probe–gallery
@@ -25,7 +28,7 @@ from threadpoolctl import threadpool_limits
 
 from facerec3d.config import read_settings
 from facerec3d.datasets.catalog import open_dataset
-from facerec3d.datasets.synthetic import DatasetConfig, write_dataset
+from facerec3d.datasets.synthetic import DatasetConfig, identity_profile, write_dataset
 from facerec3d.datasets.protocols import split
 from facerec3d.evaluation.compare import compare_runs
 from facerec3d.evaluation.run import evaluate
@@ -37,13 +40,17 @@ DEFAULT_METHODS = ("icp,pca,lda,curvature,region-icp,region-icp=examples/region-
                    "fusion=examples/fusion-icp-region.toml")
 
 
-def datasets(root: Path, subjects: int, scans: int) -> dict[str, Path]:
-    """The test, strong-expression and training sets (written when missing)."""
+def datasets(root: Path, subjects: int, scans: int, identities: str = "model") -> dict[str, Path]:
+    """The test, strong-expression and training sets (written when missing) of model or outside-model faces."""
+    who = identity_profile(identities)
+    suffix = "" if identities == "model" else "-outside"
     configs = {
-        f"test{subjects}": DatasetConfig(subjects=subjects, scans=scans),
-        f"strong{subjects}": DatasetConfig(subjects=subjects, scans=scans, expressions=("open-mouth", "smile", "surprise"),
-                                           expression_strength=(1.0, 1.0)),
-        f"train{subjects}": DatasetConfig(subjects=subjects, scans=scans, first_subject=1000, seed=1),
+        f"test{subjects}{suffix}": DatasetConfig(subjects=subjects, scans=scans, identity=who),
+        f"strong{subjects}{suffix}": DatasetConfig(subjects=subjects, scans=scans, identity=who,
+                                                   expressions=("open-mouth", "smile", "surprise"),
+                                                   expression_strength=(1.0, 1.0)),
+        f"train{subjects}{suffix}": DatasetConfig(subjects=subjects, scans=scans, first_subject=1000, seed=1,
+                                                  identity=who),
     }
     for name, cfg in configs.items():
         if not (root / name / "manifest.csv").is_file():
@@ -81,8 +88,10 @@ def main() -> None:
     ap.add_argument("--methods", default=DEFAULT_METHODS, help="Comma-separated; NAME=CONFIG.toml gives settings.")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--cache", default=str(DEFAULT_CACHE))
+    ap.add_argument("--identities", default="model", choices=["model", "outside-model"],
+                    help="Faces in the morphable model's span, or outside it (IDENTITY_PROFILES).")
     args = ap.parse_args()
-    sets = datasets(Path(args.data), args.subjects, args.scans)
+    sets = datasets(Path(args.data), args.subjects, args.scans, args.identities)
     test, strong, train = sets.values()
     out = Path(args.out)
     rows, runs = [], {test: [], strong: []}

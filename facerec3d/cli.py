@@ -392,7 +392,7 @@ def _bootstrap_options(fn):
 @main.command()
 @click.argument("data", type=click.Path(exists=True))
 @click.option("--method", default=DEFAULT_METHOD, show_default=True,
-              help="Matching method: icp, pca, lda, curvature, region-icp, keypoints, fusion.")
+              help="Matching method: icp, pca, lda, curvature, region-icp, keypoints, afm, morph-id, fusion.")
 @click.option("--method-config", type=click.Path(exists=True, dir_okay=False),
               help="TOML or JSON file of the method's settings (its config dataclass's fields).")
 @click.option("--train", type=click.Path(exists=True),

@@ -1,4 +1,8 @@
-"""Expression handling by masking (chapter §8.10.3): where does an expression move the face?
+"""Expression handling (chapter §8.10.3): masking where expressions move the face, and the expression deformation
+model of Al-Osaimi, Bennamoun & Mian (IJCV 2009, `ResidueModel`; used by the afm matcher, `afm.py`, which also
+removes the fitted blendshapes instead).
+
+Masking: where does an expression move the face?
 
 The morphable model's 53 ARKit expression blendshapes (ICT-FaceKit,
 `facerec3d.facemodel`) give each vertex's displacement at full weight.
@@ -18,6 +22,7 @@ aligns every face to that model's frame.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -64,3 +69,80 @@ def expression_mobility(half_width: float | None = None, step: float = 1.0) -> M
     front = np.take_along_axis(idx, np.argmax(verts[idx, 2], axis=1)[:, None], axis=1)[:, 0]
     values = np.where(dist[:, 0] <= 3.0, mobility[front], np.inf).reshape(gx.shape)
     return MobilityMap(values, float(axis[0]), float(step))
+
+
+# ------------------------------------------------------------------------- expression deformation model
+@dataclass(frozen=True)
+class ResidueConfig:
+    """The expression deformation model of Al-Osaimi, Bennamoun & Mian (IJCV 2009; chapter §8.10.3)."""
+
+    variance: float = 0.95  # share of the training residues' energy its modes keep (PCA, §8.7.2)
+    max_components: int = 60  # and at most this many modes
+
+
+@dataclass(frozen=True, eq=False)
+class ResidueModel:
+    """A PCA model of expression residues: shape vectors of one person's non-neutral scan less their neutral one.
+
+    Vectors are a face's features with a validity mask per feature group (`valid` (k,) covering `coefficients`
+    (C·k,) channel by channel, as the afm templates have them). The model is learnt from ± each residue, so it
+    has zero mean and a probe–gallery residue scores the same whichever face is the expressive one. A residue r
+    is reconstructed from the modes P (eq. 8.46: r̂ = P Pᵀ r) and scored by its reconstruction error (eq. 8.47:
+    e = ‖r − r̂‖, here as RMS over the features both faces have): an expression of the same person is what the
+    model reconstructs, a difference of identity is not. Missing features of a residue take the value 0 (no
+    deformation) for the projection, and are left out of the error.
+    """
+
+    components: np.ndarray  # (C·k, p) orthonormal columns
+    eigenvalues: np.ndarray  # (p,)
+
+    @staticmethod
+    def learn(features: Sequence[tuple[np.ndarray, np.ndarray]], subjects: Sequence[str],
+              labels: Sequence[str | None], expression_energy: Sequence[float],
+              config: ResidueConfig = ResidueConfig()) -> "ResidueModel | None":
+        """From training faces' (coefficients, valid) with their subjects: each subject's neutral face (its first
+        labelled neutral, else the one whose fitted expression is weakest, `expression_energy`) against each of its
+        other faces. None when no subject has two faces."""
+        by_subject: dict[str, list[int]] = {}
+        for i, s in enumerate(subjects):
+            by_subject.setdefault(s, []).append(i)
+        residues = []
+        for idx in by_subject.values():
+            if len(idx) < 2:
+                continue
+            neutral = [i for i in idx if labels[i] == "neutral"]
+            ref = neutral[0] if neutral else min(idx, key=lambda i: expression_energy[i])
+            c0, m0 = features[ref]
+            for i in idx:
+                if i != ref:
+                    c, m = features[i]
+                    ok = np.tile(m & m0, len(c) // len(m))
+                    residues.append(np.where(ok, c.astype(np.float64) - c0, 0.0))
+        if not residues:
+            return None
+        R = np.array(residues)
+        _, s, Vt = np.linalg.svd(np.concatenate([R, -R]), full_matrices=False)
+        energy = s**2 / (2 * len(R))
+        share = np.cumsum(energy) / max(energy.sum(), np.finfo(float).tiny)
+        p = min(int(np.searchsorted(share, config.variance - 1e-12)) + 1, config.max_components, len(s))
+        return ResidueModel(np.ascontiguousarray(Vt[:p].T), energy[:p])
+
+    def state(self) -> tuple[dict[str, np.ndarray], dict]:
+        return {"residue_components": self.components, "residue_eigenvalues": self.eigenvalues}, {}
+
+    @staticmethod
+    def from_state(arrays) -> "ResidueModel":
+        return ResidueModel(np.asarray(arrays["residue_components"], dtype=np.float64),
+                            np.asarray(arrays["residue_eigenvalues"], dtype=np.float64))
+
+    def errors(self, probe: np.ndarray, probe_valid: np.ndarray, gallery: np.ndarray,
+               gallery_valid: np.ndarray) -> np.ndarray:
+        """(n,) reconstruction errors (RMS over the shared features) of the residues probe − gallery[i]
+        (eqs. 8.46–8.47); +inf where the two share no feature."""
+        channels = probe.shape[-1] // probe_valid.shape[-1]
+        M = np.tile(gallery_valid & probe_valid, channels).astype(np.float64)
+        R = (probe.astype(np.float64) - gallery) * M
+        E = R - (R @ self.components) @ self.components.T
+        num, den = np.einsum("ij,ij->i", E * M, E), M.sum(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(den > 0, np.sqrt(num / np.maximum(den, 1.0)), np.inf)

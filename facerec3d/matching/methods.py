@@ -14,7 +14,7 @@ from facerec3d.errors import SettingsError
 from facerec3d.matching.base import Matcher
 
 #: Method name → "module:class". Chapter sections: ICP §8.6, PCA §8.7, LDA §8.8, curvature §8.9,
-#: regions and keypoints §8.10.
+#: regions and keypoints §8.10, the model-based afm (§8.10.1, §8.10.3) and morph-id (Blanz & Vetter).
 METHODS: dict[str, str] = {
     "icp": "facerec3d.matching.icp:ICPMatcher",
     "pca": "facerec3d.matching.subspace:PCAMatcher",
@@ -22,6 +22,8 @@ METHODS: dict[str, str] = {
     "curvature": "facerec3d.matching.curvature:CurvatureMatcher",
     "region-icp": "facerec3d.matching.regions:RegionICPMatcher",
     "keypoints": "facerec3d.matching.keypoints:KeypointMatcher",
+    "afm": "facerec3d.matching.afm:AFMMatcher",
+    "morph-id": "facerec3d.matching.morphable:MorphIDMatcher",
 }
 
 

@@ -88,6 +88,8 @@ class Detection:
     fit_rms_mm: float
     inlier_fraction: float
     protrusion_mm: float
+    model_coefficients: np.ndarray | None = None  # the full fit's identity then expression coefficients (kept for
+    #                                               the model-based matchers, matching.morphable)
 
 
 def _subsample(scan: FaceScan, spacing_mm: float) -> tuple[FaceScan, float]:
@@ -255,7 +257,7 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
         raise FailureToAcquire(why, scan.meta.path)
     fit, protrusion = passing[0]
     return Detection(fit.landmarks["nose_tip"], fit.R, fit.t, fit.landmarks, fit.rms_mm, fit.inlier_fraction,
-                     protrusion)
+                     protrusion, fit.coefficients)
 
 
 def crown_heights(sub: FaceScan, config: DetectConfig = DetectConfig()) -> np.ndarray:

@@ -26,7 +26,8 @@ frame: `meta.extra["view"]` records the view direction estimated there and wheth
 `meta.extra["quality"]` the scan's quality (`QUALITY_FIELDS`): how well the
 face model fits (RMS mm, share of inliers), how far the nose protrudes, how
 much of the face was seen, and the measured pitch, depth step and noise at
-the face, so a user can see why a scan is weak; `meta.extra["preprocess_fingerprint"]`
+the face, so a user can see why a scan is weak; `meta.extra["model_fit"]` the face model's fitted identity and
+expression coefficients in that frame (for the model-based matchers); `meta.extra["preprocess_fingerprint"]`
 is the settings' `PreprocessConfig.digest()`, so a saved face (`.npz`) says how it was made
 (`preprocessed_with`: a gallery service takes such a face as it is when the settings are its own).
 """
@@ -137,6 +138,10 @@ class Preprocessor:
             out = out.replace(meta=out.meta.replace(extra=dict(out.meta.extra, view=view.record())))
         extra = dict(out.meta.extra, to_frontal=np.hstack([found.R @ view.R, found.t[:, None]]).tolist(),
                      quality={k: round(float(v), 4) for k, v in quality.items()}, **{FINGERPRINT_KEY: cfg.digest()})
+        if found.model_coefficients is not None:  # the model fit in this frame (matching.morphable.face_fit)
+            k = cfg.detect.model.identity_modes
+            extra[MODEL_FIT_KEY] = {"identity": found.model_coefficients[:k].tolist(),
+                                    "expression": found.model_coefficients[k:].tolist()}
         return out.replace(meta=out.meta.replace(extra=extra))
 
     def _timed(self, stage: str, fn, *args):
@@ -147,6 +152,7 @@ class Preprocessor:
 
 
 FINGERPRINT_KEY = "preprocess_fingerprint"  # meta.extra of a preprocessed face: its settings' digest()
+MODEL_FIT_KEY = "model_fit"  # meta.extra of a preprocessed face: the morphable-model fit's coefficients
 
 
 def preprocessed_with(face: FaceScan) -> str | None:

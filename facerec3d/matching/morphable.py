@@ -1,0 +1,271 @@
+"""The morphable-model fit of a preprocessed face as a matching representation (chapter §8.10.1, §8.10.3).
+
+Preprocessing fits the ICT-FaceKit model to every scan (`preprocess.pose.fit_face_model`: pose, 40 identity
+modes, 53 expression blendshapes) and keeps the coefficients in `meta.extra["model_fit"]`; a face that has
+none (made before that was kept, or built directly in the frontal frame) is fitted again here, from the
+frontal pose it is already in. The fit gives three things the model-based methods use:
+
+* **dense correspondence** (the role of Kakadiaris et al.'s annotated face model, TPAMI 2007): a fixed UV
+  grid over the model's mean face (its frontal x–y projection, the front-most triangle of each cell) names the
+  same point of the face — barycentric in the same model triangle — on every fitted face. Sampling the scan's
+  surface along the fitted normals at those points gives the face's *geometry image* (`GeometryImage`):
+  x, y, z at each cell, with a mask where the scan has no surface near the fit (holes, occluders);
+* **expression coefficients**, whose blendshape displacements can be subtracted from the geometry image (a
+  model-based expression removal, after Amberg, Knothe & Vetter, FG 2008);
+* **identity coefficients**, a 40-number description of the face (Blanz & Vetter, PAMI 2003): `MorphIDMatcher`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from numba import njit
+
+from facerec3d.facemodel import load_model
+from facerec3d.matching.base import Matcher, Template
+from facerec3d.preprocess.pipeline import MODEL_FIT_KEY
+from facerec3d.preprocess.pose import ModelFitConfig, fit_face_model
+from facerec3d.scan import FaceScan
+
+
+@dataclass(frozen=True)
+class FaceFit:
+    """A face's morphable-model fit: identity coefficients α, expression weights w and the pose x -> R x + t
+    from the face's frame into the fitted model's (nose tip at the origin); identity pose when the fit is the
+    one preprocessing made, since the face was moved into that frame."""
+
+    identity: np.ndarray  # (K,)
+    expression: np.ndarray  # (E,)
+    R: np.ndarray
+    t: np.ndarray
+
+
+def face_fit(face: FaceScan, config: ModelFitConfig = ModelFitConfig()) -> FaceFit:
+    """The model fit of a preprocessed face: the one preprocessing kept, else fitted now from the frontal pose
+    (about 0.3 s)."""
+    n_expressions = len(load_model().expression_names)
+    if stored := face.meta.extra.get(MODEL_FIT_KEY):
+        expression = np.asarray(stored["expression"], dtype=np.float64)
+        return FaceFit(np.asarray(stored["identity"], dtype=np.float64),
+                       np.pad(expression, (0, n_expressions - len(expression))), np.eye(3), np.zeros(3))
+    fit = fit_face_model(face.points, np.eye(3), np.zeros(3), config)
+    k = config.identity_modes
+    expression = np.pad(fit.coefficients[k:], (0, n_expressions - len(fit.coefficients[k:])))
+    return FaceFit(fit.coefficients[:k].copy(), expression, fit.R, fit.t)
+
+
+@dataclass(frozen=True)
+class GeometryImageConfig:
+    """The UV grid of the geometry image and how the scan is sampled on it (§8.10.1)."""
+
+    size: int = 64  # cells per side (a power of two for the Haar pyramid)
+    cell_mm: float = 2.0  # on the mean face: 64 × 2 mm spans 128 mm, eyebrows to chin, cheek to cheek
+    top_mm: float = 56.0  # y of the top row's centres on the mean face (nose tip at the origin), mm: the grid spans
+    #   y from +56 (forehead) down to −70 (above the chin) and x ±63 mm
+    max_offset_mm: float = 10.0  # the scan's surface must lie this near the fitted surface along its normal, else the
+    #   cell is missing (an occluder, hair, a hole): the outside-model faces of the generator stray ≤ 3 mm from the
+    #   model's span, a hand or glasses 10 mm and more (datasets.synthetic.IDENTITY_PROFILES)
+
+    def __post_init__(self) -> None:
+        if self.size < 2 or self.size & (self.size - 1):
+            raise ValueError("size must be a power of two ≥ 2")
+        if self.cell_mm <= 0 or self.max_offset_mm <= 0:
+            raise ValueError("cell_mm and max_offset_mm must be positive")
+
+
+@njit(cache=True)
+def _front_triangles(V, tris, x0, y0, cell, size):  # pragma: no cover - compiled
+    """For each cell centre (x0 + j·cell, y0 − i·cell) of a size² grid: the front-most triangle of V over it
+    (−1: none) and its barycentric coordinates."""
+    best = np.full((size, size), -np.inf)
+    tri = np.full((size, size), -1, np.int64)
+    bary = np.zeros((size, size, 3))
+    for k in range(tris.shape[0]):
+        a, b, c = V[tris[k, 0]], V[tris[k, 1]], V[tris[k, 2]]
+        ua, va = (a[0] - x0) / cell, (y0 - a[1]) / cell
+        ub, vb = (b[0] - x0) / cell, (y0 - b[1]) / cell
+        uc, vc = (c[0] - x0) / cell, (y0 - c[1]) / cell
+        area = (ub - ua) * (vc - va) - (uc - ua) * (vb - va)
+        if abs(area) < 1e-12:
+            continue
+        for i in range(max(int(np.ceil(min(va, vb, vc))), 0), min(int(np.floor(max(va, vb, vc))), size - 1) + 1):
+            for j in range(max(int(np.ceil(min(ua, ub, uc))), 0), min(int(np.floor(max(ua, ub, uc))), size - 1) + 1):
+                w1 = ((j - ua) * (vc - va) - (uc - ua) * (i - va)) / area
+                w2 = ((ub - ua) * (i - va) - (j - ua) * (vb - va)) / area
+                w0 = 1.0 - w1 - w2
+                if w0 < -1e-9 or w1 < -1e-9 or w2 < -1e-9:
+                    continue
+                z = w0 * a[2] + w1 * b[2] + w2 * c[2]
+                if z > best[i, j]:
+                    best[i, j], tri[i, j] = z, k
+                    bary[i, j, 0], bary[i, j, 1], bary[i, j, 2] = w0, w1, w2
+    return tri, bary
+
+
+@dataclass(frozen=True, eq=False)
+class UVBasis:
+    """The model at the UV grid's points: mean, identity and expression modes (n², 3[, K]), mm, in the frame with
+    the nose tip at the origin, and each mode's nose-tip displacement; `inside` marks cells on the model face."""
+
+    config: GeometryImageConfig
+    inside: np.ndarray  # (n²,) bool
+    mean: np.ndarray  # (n², 3)
+    identity: np.ndarray  # (n², 3, K)
+    expression: np.ndarray  # (n², 3, E)
+    nose_identity: np.ndarray  # (3, K)
+    nose_expression: np.ndarray  # (3, E)
+    mobility: np.ndarray  # (n²,) mm: the largest displacement any one blendshape gives the point (expression.py)
+
+    def surface(self, fit: FaceFit, expression: bool = True) -> np.ndarray:
+        """(n², 3) the fitted surface at the UV points, in the face's frame; without the fitted expression's
+        displacements when `expression` is False (the face's nose tip stays at the origin)."""
+        a = fit.identity[: self.identity.shape[2]]
+        s = self.mean + self.identity[:, :, : len(a)] @ a - self.nose_identity[:, : len(a)] @ a
+        if expression:
+            s = s + self.expression @ fit.expression - self.nose_expression @ fit.expression
+        return (s - fit.t) @ fit.R
+
+    def expression_displacement(self, fit: FaceFit) -> np.ndarray:
+        """(n², 3) what the fitted expression moves each UV point by, in the face's frame (nose tip fixed)."""
+        return (self.expression @ fit.expression - self.nose_expression @ fit.expression) @ fit.R
+
+
+@lru_cache(maxsize=4)
+def uv_basis(config: GeometryImageConfig = GeometryImageConfig()) -> UVBasis:
+    """The model sampled at the UV grid of `config` (cached)."""
+    m = load_model()
+    nose = m.mean[m.nose_tip].astype(np.float64)
+    V = m.mean.astype(np.float64) - nose
+    face_tris = m.triangles[(m.region[m.triangles] == 0).all(axis=1)].astype(np.int64)
+    n, cell = config.size, config.cell_mm
+    x0, y0 = -(n - 1) / 2 * cell, config.top_mm
+    tri, bary = _front_triangles(V, face_tris, x0, y0, cell, n)
+    tri, bary = tri.ravel(), bary.reshape(-1, 3)
+    inside = tri >= 0
+    corners = face_tris[np.maximum(tri, 0)]  # (n², 3) vertex indices
+
+    def at_uv(field: np.ndarray) -> np.ndarray:  # (V, ...) -> (n², ...), barycentric
+        f = field[corners].astype(np.float64)
+        return np.einsum("uc,uc...->u...", bary, f)
+
+    identity = at_uv(m.identity_basis.transpose(1, 2, 0))  # (n², 3, K)
+    expression = at_uv(m.expression_basis.transpose(1, 2, 0))
+    mobility = np.linalg.norm(expression, axis=1).max(axis=1)
+    return UVBasis(config, inside, at_uv(V), identity, expression,
+                   m.identity_basis[:, m.nose_tip].astype(np.float64).T,
+                   m.expression_basis[:, m.nose_tip].astype(np.float64).T, mobility)
+
+
+@dataclass(frozen=True, eq=False)
+class GeometryImage:
+    """A face's geometry image: the scan's surface at each UV point (n, n, 3) mm in the face's frame, and where it
+    was seen (n, n); with the fitted surface and what the fitted expression moved each point by."""
+
+    points: np.ndarray  # (n, n, 3)
+    valid: np.ndarray  # (n, n) bool
+    fitted: np.ndarray  # (n, n, 3) the fitted model surface
+    expression: np.ndarray  # (n, n, 3) the fitted expression's displacement
+
+
+def _depth_grid(face: FaceScan) -> tuple[np.ndarray, float, float, float]:
+    """(depth image (H, W) NaN where none, x of column 0, y of row 0, cell mm) of a face on a uniform x–y grid."""
+    xyz, valid = face.to_range_image()
+    r, c = face.grid[:, 0], face.grid[:, 1]
+    span = c.max() - c.min()
+    res = float((face.points[:, 0].max() - face.points[:, 0].min()) / span) if span else 1.0
+    x0 = float(np.median(face.points[:, 0] - c * res))
+    y0 = float(np.median(face.points[:, 1] + r * res))
+    return np.where(valid, xyz[..., 2], np.nan), x0, y0, res
+
+
+def _bilinear(z: np.ndarray, x0: float, y0: float, res: float, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Depth at (x, y) by bilinear interpolation of the grid's four nearest cells; NaN unless all four hold data."""
+    fc, fr = (x - x0) / res, (y0 - y) / res
+    ok = np.isfinite(fc) & np.isfinite(fr) & (fc >= 0) & (fr >= 0) & (fc < z.shape[1] - 1) & (fr < z.shape[0] - 1)
+    c = np.where(ok, np.floor(np.where(ok, fc, 0)), 0).astype(np.int64)
+    r = np.where(ok, np.floor(np.where(ok, fr, 0)), 0).astype(np.int64)
+    u, v = fc - c, fr - r
+    out = ((1 - u) * (1 - v) * z[r, c] + u * (1 - v) * z[r, c + 1] + (1 - u) * v * z[r + 1, c] + u * v * z[r + 1, c + 1])
+    return np.where(ok, out, np.nan)
+
+
+def geometry_image(face: FaceScan, fit: FaceFit | None = None,
+                   config: GeometryImageConfig = GeometryImageConfig()) -> GeometryImage:
+    """The geometry image of a preprocessed face (module docstring): at each UV point of the fitted surface F with
+    unit normal n, the scan's surface F + s·n where the normal line meets it (three Newton steps on the depth map,
+    which is a height field on the resampling grid), missing where the scan has no surface there or it lies more
+    than `max_offset_mm` from F."""
+    fit = face_fit(face) if fit is None else fit
+    basis = uv_basis(config)
+    n = config.size
+    F = basis.surface(fit).reshape(n, n, 3)
+    du, dv = np.gradient(F, axis=1), np.gradient(F, axis=0)
+    normal = np.cross(dv, du)  # rows run down (−y), columns along +x: this points along +z on a frontal face
+    normal /= np.maximum(np.linalg.norm(normal, axis=2, keepdims=True), 1e-12)
+    z, x0, y0, res = _depth_grid(face)
+    s = np.zeros((n, n))
+    nz = np.maximum(normal[..., 2], 0.1)
+    for _ in range(3):
+        q = F + s[..., None] * normal
+        gap = _bilinear(z, x0, y0, res, q[..., 0], q[..., 1]) - q[..., 2]
+        s = s + np.nan_to_num(gap) * nz
+    q = F + s[..., None] * normal
+    gap = _bilinear(z, x0, y0, res, q[..., 0], q[..., 1]) - q[..., 2]
+    valid = (basis.inside.reshape(n, n) & np.isfinite(gap) & (np.abs(np.nan_to_num(gap, nan=np.inf)) < 0.25 * res)
+             & (np.abs(s) <= config.max_offset_mm))
+    points = np.where(valid[..., None], q, np.nan)
+    return GeometryImage(points, valid, F, basis.expression_displacement(fit).reshape(n, n, 3))
+
+
+# ------------------------------------------------------------------------------------------------ morph-id
+@dataclass(frozen=True)
+class MorphIDConfig:
+    """Identity coefficients as the feature (Blanz & Vetter, "Face recognition based on fitting a 3D morphable
+    model", PAMI 2003: the fitted coefficients, scaled by the model's standard deviations, compared by angle)."""
+
+    modes: int = 40  # leading identity modes compared (preprocessing fits 40, pose.ModelFitConfig)
+    distance: str = "cosine"  # "cosine" (Blanz & Vetter's angle) or "euclidean"
+
+    def __post_init__(self) -> None:
+        if self.distance not in ("cosine", "euclidean"):
+            raise ValueError("distance must be 'cosine' or 'euclidean'")
+        if self.modes < 1:
+            raise ValueError("modes must be ≥ 1")
+
+
+class MorphIDMatcher(Matcher[np.ndarray]):
+    """The fitted identity coefficients α (unit prior: ICT-FaceKit's modes are scaled by their standard
+    deviations) as a face's template; similarity cos(α_p, α_g) or −‖α_p − α_g‖."""
+
+    name = "morph-id"
+    config_class = MorphIDConfig
+
+    def __init__(self, config: MorphIDConfig | None = None) -> None:
+        self.config = MorphIDConfig() if config is None else config
+
+    def features(self, scan: FaceScan) -> np.ndarray:
+        a = face_fit(scan).identity[: self.config.modes]
+        return np.pad(a, (0, self.config.modes - len(a)))
+
+    def enroll(self, scan: FaceScan) -> Template:
+        return Template(scan.meta.subject, scan.meta.scan_id, self.name, {"identity": self.features(scan)})
+
+    def prepare(self, scan: FaceScan) -> np.ndarray:
+        return self.features(scan)
+
+    def _similarity(self, p: np.ndarray, G: np.ndarray) -> np.ndarray:
+        if self.config.distance == "cosine":
+            return G @ p / np.maximum(np.linalg.norm(G, axis=1) * np.linalg.norm(p), np.finfo(float).tiny)
+        return -np.linalg.norm(G - p, axis=1)
+
+    def scores(self, probe: FaceScan | np.ndarray, templates: Sequence[Template]) -> tuple[np.ndarray, None]:
+        p = self._probe(probe)
+        if not templates:
+            return np.zeros(0), None
+        return self._similarity(p, np.stack([t.arrays["identity"] for t in templates])), None
+
+    def score(self, probe: FaceScan | np.ndarray, template: Template) -> float:
+        return float(self.scores(probe, [template])[0][0])
