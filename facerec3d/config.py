@@ -40,7 +40,7 @@ RANGES: dict[str, tuple[float, float, bool]] = {
         "normal_neighbours", "step_mm", "sigma_mm", "committee_radius", "radius", "nms_radius", "max_keypoints",
         "patch_radius", "patch_bins", "max_offset", "ransac_iterations", "n_components", "pca_components"),
         POSITIVE),
-    **dict.fromkeys(("min_coverage", "rim_coverage", "min_coarse_inliers", "min_inliers", "min_seen",
+    **dict.fromkeys(("min_coverage", "rim_coverage", "min_disc_coverage", "min_coarse_inliers", "min_inliers", "min_seen",
                      "min_overlap", "variance", "pca_share"), FRACTION),
     "start_yaws": ANY,  # degrees, either way
 }

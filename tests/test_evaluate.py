@@ -118,7 +118,7 @@ def test_cli_method_config_sets_the_matcher_and_bad_settings_are_one_line(datase
     good, bad = tmp_path / "p2plane.toml", tmp_path / "bad.toml"
     good.write_text('variant = "point-to-plane"\nfine_points = 800\n')
     bad.write_text('variant = "point-to-plane"\nfine_pionts = 800\n')
-    base = ["evaluate", str(dataset), "--jobs", "1", "--cache", str(out / "cache")]
+    base = ["evaluate", str(dataset), "--method", "icp", "--jobs", "1", "--cache", str(out / "cache")]
     r = CliRunner().invoke(main, base + ["--out", str(tmp_path / "p2p"), "--method-config", str(good)])
     assert r.exit_code == 0, r.output
     m = json.loads((tmp_path / "p2p" / "metrics.json").read_text())

@@ -22,7 +22,7 @@ def exp3(tmp_path_factory):
     """3 subjects x 6 scans (2 per semester) evaluated with --protocol frgc-exp3 through the command line."""
     root = tmp_path_factory.mktemp("exp3")
     write_dataset(root / "data", DatasetConfig(subjects=3, scans=6, seed=4, scanner=SMALL), "abs")
-    args = ["evaluate", str(root / "data"), "--protocol", "frgc-exp3", "--out", str(root / "run"), "--jobs", "1",
+    args = ["evaluate", str(root / "data"), "--method", "icp", "--protocol", "frgc-exp3", "--out", str(root / "run"), "--jobs", "1",
             "--cache", str(root / "cache"), "--bootstrap", "200", "--seed", "3"]
     r = CliRunner().invoke(main, args)
     assert r.exit_code == 0, r.output

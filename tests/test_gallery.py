@@ -132,11 +132,12 @@ def test_cli_enroll_identify_verify_and_gallery(tmp_path):
     bad = tmp_path / "broken.abs"
     bad.write_text("not a range image\n")
     store, cache = str(tmp_path / "g.sqlite"), str(tmp_path / "cache")
-    r = run.invoke(main, ["enroll", *map(str, gallery_scans), str(bad), "--gallery", store, "--jobs", "2",
-                          "--cache", cache])
+    r = run.invoke(main, ["enroll", *map(str, gallery_scans), str(bad), "--gallery", store, "--method", "icp",
+                          "--jobs", "2", "--cache", cache])
     assert r.exit_code == 0, r.output
     assert "3 enrolled, 0 already enrolled, 1 failed to enrol" in r.output and "broken.abs" in r.output
-    r = run.invoke(main, ["enroll", str(gallery_scans[0]), "--gallery", store, "--jobs", "1", "--cache", cache])
+    r = run.invoke(main, ["enroll", str(gallery_scans[0]), "--gallery", store, "--method", "icp", "--jobs", "1",
+                          "--cache", cache])
     assert "0 enrolled, 1 already enrolled" in r.output
     for cascade in ([], ["--cascade"]):
         r = run.invoke(main, ["identify", str(probe), "--gallery", store, "-k", "3", "--jobs", "2", "--cache", cache,

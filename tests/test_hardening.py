@@ -65,20 +65,26 @@ def data(tmp_path_factory):
 
 
 def enroll(args, data, store, *more):
-    return CliRunner().invoke(main, ["enroll", *map(str, args), "--gallery", str(store), "--jobs", "1",
+    return CliRunner().invoke(main, ["enroll", *map(str, args), "--gallery", str(store), "--method", "icp", "--jobs", "1",
                                      "--cache", str(data["cache"]), *more])
 
 
 # ---------------------------------------------------------------- 1. memory: stream, check, bound
+#: Starts `python -m facerec3d.cli ARGS` from a small process and writes its peak resident memory (KiB, from
+#: wait4) to the file named first. Measured from the test process itself, the peak would include the test
+#: process's own memory: Linux counts the memory of the process that execs into the child's peak.
+_MEASURE = ("import os, subprocess, sys; p = subprocess.Popen(sys.argv[2:]); _, s, u = os.wait4(p.pid, 0); "
+            "open(sys.argv[1], 'w').write(str(u.ru_maxrss)); sys.exit(os.waitstatus_to_exitcode(s))")
+
+
 def peak_rss_kb(tmp_path, *args) -> tuple[int, int, str, str]:
     """(peak resident memory in KiB, exit code, stdout, stderr) of `python -m facerec3d.cli ARGS` (the largest of
-    the process and its children, from wait4)."""
-    out, err = tmp_path / "stdout.txt", tmp_path / "stderr.txt"
+    the process and its children, from wait4, measured by a small launcher process)."""
+    out, err, peak = tmp_path / "stdout.txt", tmp_path / "stderr.txt", tmp_path / "peak.txt"
     with open(out, "w") as fo, open(err, "w") as fe:
-        proc = subprocess.Popen([sys.executable, "-m", "facerec3d.cli", *map(str, args)], stdout=fo, stderr=fe)
-        _, status, usage = os.wait4(proc.pid, 0)
-        proc.returncode = os.waitstatus_to_exitcode(status)
-    return usage.ru_maxrss, proc.returncode, out.read_text(), err.read_text()
+        code = subprocess.run([sys.executable, "-c", _MEASURE, str(peak), sys.executable, "-m", "facerec3d.cli",
+                               *map(str, args)], stdout=fo, stderr=fe).returncode
+    return int(peak.read_text()), code, out.read_text(), err.read_text()
 
 
 def bombs(folder) -> dict[str, str]:

@@ -146,7 +146,7 @@ def test_cli_info_on_the_attack_files_stays_under_1_gib_with_one_line_each(attac
     assert peak < GiB_KB, f"info: {peak / 1024:.0f} MiB"
     assert code == 2 and "Traceback" not in err
     for name, reason in reasons.items():
-        assert any(line.startswith(f"{folder / name}: error:") and reason in line for line in err.splitlines()), \
+        assert any(line.startswith(f"error: {folder / name}:") and reason in line for line in err.splitlines()), \
             (name, err)
 
 

@@ -78,6 +78,15 @@ class Template:
         return cls(meta["subject"], meta["scan_id"], meta["method"], arrays, meta["attrs"])
 
 
+def vector_similarity(p: np.ndarray, G: np.ndarray, distance: str, scale: np.ndarray | None = None) -> np.ndarray:
+    """Similarities of a feature vector `p` to each row of `G`: the cosine, or else minus the Euclidean distance
+    (of the differences divided by `scale` when given: Mahalanobis in a whitened space, §8.7.3)."""
+    if distance == "cosine":
+        return G @ p / np.maximum(np.linalg.norm(G, axis=1) * np.linalg.norm(p), np.finfo(float).tiny)
+    diff = G - p if scale is None else (G - p) / scale
+    return -np.sqrt(np.einsum("ij,ij->i", diff, diff))
+
+
 class GalleryScores(NamedTuple):
     """A probe's scores against a gallery, one per entry: similarity and tiebreak (0 where the method has none)."""
 

@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit
 
 from facerec3d.facemodel import load_model
-from facerec3d.matching.base import Matcher, Template
+from facerec3d.matching.base import Matcher, Template, vector_similarity
 from facerec3d.preprocess.pipeline import MODEL_FIT_KEY
 from facerec3d.preprocess.pose import ModelFitConfig, fit_face_model
 from facerec3d.scan import FaceScan
@@ -257,9 +257,7 @@ class MorphIDMatcher(Matcher[np.ndarray]):
         return self.features(scan)
 
     def _similarity(self, p: np.ndarray, G: np.ndarray) -> np.ndarray:
-        if self.config.distance == "cosine":
-            return G @ p / np.maximum(np.linalg.norm(G, axis=1) * np.linalg.norm(p), np.finfo(float).tiny)
-        return -np.linalg.norm(G - p, axis=1)
+        return vector_similarity(p, G, self.config.distance)
 
     def scores(self, probe: FaceScan | np.ndarray, templates: Sequence[Template]) -> tuple[np.ndarray, None]:
         p = self._probe(probe)

@@ -33,7 +33,7 @@ import numpy as np
 import scipy.linalg
 
 from facerec3d.errors import InputError
-from facerec3d.matching.base import Matcher, Template
+from facerec3d.matching.base import Matcher, Template, vector_similarity
 from facerec3d.matching.depthmap import DepthMapConfig, depth_window, fill_nearest
 from facerec3d.scan import FaceScan
 
@@ -183,12 +183,8 @@ class _SubspaceMatcher(Matcher[np.ndarray]):
         return self.features(scan)
 
     def _similarity(self, p: np.ndarray, G: np.ndarray) -> np.ndarray:
-        if self.config.distance == "cosine":
-            return G @ p / np.maximum(np.linalg.norm(G, axis=1) * np.linalg.norm(p), np.finfo(float).tiny)
-        diff = G - p
-        if self.config.distance == "mahalanobis":
-            diff = diff / self.scale_
-        return -np.sqrt(np.einsum("ij,ij->i", diff, diff))
+        return vector_similarity(p, G, self.config.distance,
+                                 self.scale_ if self.config.distance == "mahalanobis" else None)
 
     def score(self, probe: FaceScan | np.ndarray, template: Template) -> float:
         return float(self._similarity(self._probe(probe), template.arrays["features"][None])[0])

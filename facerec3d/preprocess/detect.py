@@ -53,6 +53,8 @@ class DetectConfig:
     #                                 nose ~10–25 mm, less after smoothing 8 mm depth steps; a wall 0, the back of a
     #                                 head ~4); measured on the scan, not the model
     min_seen: float = 0.8  # least share of the fitted face's camera-facing surface the scan agrees with (seen_share)
+    min_disc_coverage: float = 0.25  # placements whose 60 mm frontal disc the scan covers less go after the others
+    #                                  (a dense mesh once had its best placement on a patch covering 2.5 % of it)
     seen_radius_mm: float = 50.0
     seen_margin_mm: float = 15.0
     seen_radius_px: float = 1.5
@@ -255,6 +257,9 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
         else:
             why = f"no face-shaped surface: the camera saw only {seen:.0%} of where the fitted face would be"
         raise FailureToAcquire(why, scan.meta.path)
+    # a placement whose face disc the scan hardly covers (a fit to a small patch) goes after those it covers
+    pitch = scan.resolution()
+    passing.sort(key=lambda x: disc_coverage(scan.points, x[0], pitch, config) < config.min_disc_coverage)
     fit, protrusion = passing[0]
     return Detection(fit.landmarks["nose_tip"], fit.R, fit.t, fit.landmarks, fit.rms_mm, fit.inlier_fraction,
                      protrusion, fit.coefficients)
@@ -337,6 +342,14 @@ def placement_score(fit: ModelFit, config: DetectConfig = DetectConfig()) -> flo
     identity = fit.coefficients[: config.model.identity_modes]
     rms = float(np.sqrt(np.mean(identity**2))) if len(identity) else 0.0
     return fit.inlier_fraction - config.identity_penalty * max(0.0, rms - 1.0)
+
+
+def disc_coverage(points: np.ndarray, fit: ModelFit, pitch: float, config: DetectConfig = DetectConfig()) -> float:
+    """Share of the 60 mm disc around the fitted nose, in the fitted frontal frame, that the scan's points cover
+    (each point standing for a pitch × pitch cell, within `context_mm` in depth)."""
+    p = points @ fit.R.T + fit.t
+    near = (np.linalg.norm(p[:, :2], axis=1) <= 60.0) & (np.abs(p[:, 2]) <= config.context_mm)
+    return float(min(1.0, near.sum() * pitch**2 / (np.pi * 60.0**2)))
 
 
 def nose_heights(points: np.ndarray, fit: ModelFit, config: DetectConfig = DetectConfig()) -> tuple[float, float]:
