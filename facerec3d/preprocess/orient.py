@@ -26,7 +26,7 @@ import numpy as np
 from facerec3d.geometry.transforms import rotation_from_euler
 from facerec3d.preprocess.detect import DetectConfig, nose_candidates
 from facerec3d.preprocess.pose import fit_face_model, hotelling_rotation, rotation_to_z
-from facerec3d.preprocess.resample import gridify, point_spacing
+from facerec3d.preprocess.resample import front_points, gridify, point_spacing
 from facerec3d.scan import FaceScan
 
 
@@ -115,17 +115,6 @@ def upright_fit(grid_scan: FaceScan, config: OrientConfig = OrientConfig(),
     return float(np.degrees(np.arctan2(up[0], up[1]))), float(best.inlier_fraction)
 
 
-def _front_points(scan: FaceScan, cell: float) -> FaceScan:
-    """A mesh as it is (it is rasterised at the cell size); a point cloud thinned to its front-most point in each
-    `cell` × `cell` square of x–y, so that its triangulation is quick and regular."""
-    if scan.mesh is not None:
-        return scan
-    key = np.floor(scan.points[:, :2] / cell).astype(np.int64)
-    key = (key[:, 0] - key[:, 0].min()) * (key[:, 1].max() - key[:, 1].min() + 1) + key[:, 1] - key[:, 1].min()
-    order = np.lexsort((-scan.points[:, 2], key))
-    return scan.subset(order[np.r_[True, key[order][1:] != key[order][:-1]]])
-
-
 def orient(scan: FaceScan, config: OrientConfig = OrientConfig(),
            detect: DetectConfig = DetectConfig()) -> tuple[FaceScan, Orientation]:
     """The scan turned to be seen along +z, head up, and how (module docstring). Grid scans (range images, depth
@@ -139,7 +128,7 @@ def orient(scan: FaceScan, config: OrientConfig = OrientConfig(),
         turned = bool(np.degrees(np.arccos(np.clip(v[2], -1.0, 1.0))) > config.max_tilt_deg)
         R = rotation_to_z(v) if turned else np.eye(3)
         seen = scan.transformed(R, np.zeros(3))
-        roll, fits = upright_fit(gridify(_front_points(seen, cell), cell), config, detect)
+        roll, fits = upright_fit(gridify(front_points(seen, cell), cell), config, detect)
         if best is None or fits > best[0]:
             best = (fits, Orientation(rotation_from_euler(0.0, 0.0, roll) @ R, v, turned, roll))
     view = best[1]

@@ -132,6 +132,21 @@ def point_spacing(points: np.ndarray, sample: int = 20000) -> float:
     return float(np.median(d)) if len(d) else float("nan")
 
 
+MAX_TRIANGULATED = 400_000  # points a point cloud is thinned to before its Delaunay triangulation (memory; a
+#                              480 × 640 range image holds at most 307,200)
+
+
+def front_points(scan: FaceScan, cell: float) -> FaceScan:
+    """A mesh as it is (it is rasterised at the cell size); a point cloud thinned to its front-most point in each
+    `cell` × `cell` square of x–y, so that its triangulation is quick and regular."""
+    if scan.mesh is not None:
+        return scan
+    key = np.floor(scan.points[:, :2] / cell).astype(np.int64)
+    key = (key[:, 0] - key[:, 0].min()) * (key[:, 1].max() - key[:, 1].min() + 1) + key[:, 1] - key[:, 1].min()
+    order = np.lexsort((-scan.points[:, 2], key))
+    return scan.subset(order[np.r_[True, key[order][1:] != key[order][:-1]]])
+
+
 def surface_triangles(points: np.ndarray, max_edge_mm: float) -> np.ndarray:
     """(M, 3) triangles of a point cloud seen along z: the Delaunay triangulation of its (x, y), less triangles
     with an edge longer than `max_edge_mm` in 3D (they would bridge holes and depth discontinuities)."""
@@ -163,15 +178,18 @@ def gridify(scan: FaceScan, resolution_mm: float = 0.0, edge_factor: float = 4.0
         return scan.replace(grid=np.zeros((0, 2), np.int32), grid_shape=(0, 0), points=np.zeros((0, 3)), normals=None,
                             colors=None, mesh=None)
     spacing = point_spacing(scan.points)
-    res = float(resolution_mm) if resolution_mm > 0 else spacing
-    if not np.isfinite(res) or res <= 0:
+    if not np.isfinite(spacing) or spacing <= 0:
         raise FailureToAcquire(f"the {scan.n_points} points have no measurable spacing", scan.meta.path)
-    tris = scan.mesh if scan.mesh is not None else surface_triangles(scan.points, edge_factor * spacing)
+    if scan.mesh is None and scan.n_points > MAX_TRIANGULATED:  # no face needs more: thinned, memory bounded
+        spacing = spacing * np.sqrt(scan.n_points / MAX_TRIANGULATED)  # one point per cell of this size
+        scan = front_points(scan, spacing)
+    res = float(resolution_mm) if resolution_mm > 0 else spacing
     lo, hi = scan.points[:, :2].min(axis=0), scan.points[:, :2].max(axis=0)
     shape = (int(np.floor((hi[1] - lo[1]) / res)) + 1, int(np.floor((hi[0] - lo[0]) / res)) + 1)
     if shape[0] * shape[1] > MAX_POINTS:  # the grid's images would not fit in memory; no face is that large
         raise FailureToAcquire(f"the surface spans {shape[0]}×{shape[1]} cells of {res:.3g} mm, more than a face "
                                f"scan's {MAX_POINTS}", scan.meta.path)
+    tris = scan.mesh if scan.mesh is not None else surface_triangles(scan.points, edge_factor * spacing)
     z = _depth_image(scan.points, tris, lo[0], hi[1], res, *shape)
     rows, cols = np.nonzero(np.isfinite(z))
     xyz = np.stack([lo[0] + cols * res, hi[1] - rows * res, z[rows, cols]], axis=1)
