@@ -356,7 +356,7 @@ def run_method(method: str, data: Path, gallery_rows: list, probe_rows: list, ou
                        cache=cache, options=options, train=train, config=config or PreprocessConfig())
     wall_s = time.perf_counter() - t0
     rows = read_score_rows(out / label / "scores.txt")
-    probe_at = {(r["subject"], Path(r["path"]).as_posix()): i for i, r in enumerate(probe_rows)}
+    probe_at = {(r["subject"], Path(r["path"]).relative_to(data).as_posix()): i for i, r in enumerate(probe_rows)}
     gallery_at = {r["subject"]: j for j, r in enumerate(gallery_rows)}
     if len(gallery_at) != len(gallery_rows):
         raise ValueError("the manifest has several gallery frames for one subject; scores.txt cannot tell them apart")
