@@ -1,5 +1,5 @@
 """Service benchmark (issue 13): identification over HTTP against 1,000 enrolled faces, 1 / 4 / 16 concurrent
-clients, exhaustive and cascade, raw scans and faces preprocessed at the edge, against the CLI's `identify` per
+clients, exhaustive and cascade (depth screen, or the learned embedding's screen: `cascade-embedding`), raw scans and faces preprocessed at the edge, against the CLI's `identify` per
 call, measured in the same run.
 
     python benchmarks/service_bench.py [--faces 1000] [--clients 1,4,16] [--requests 24] [--requests-preprocessed 48]
@@ -152,7 +152,16 @@ def service_cpu(url: str, key: str) -> float:
     return float(next(line.split()[1] for line in text.splitlines() if line.startswith("facerec3d_cpu_seconds ")))
 
 
-def run_level(url: str, key: str, probes: list, clients: int, total: int, cascade: bool, preprocessed: bool) -> dict:
+#: Modes: exhaustive ICP, or the cascade with the depth screen or the learned embedding's screen.
+SCREENS = {"exhaustive": None, "cascade": "depth", "cascade-embedding": "embedding"}
+
+
+def _form(mode: str) -> dict:
+    screen = SCREENS[mode]
+    return {"k": "5", "cascade": str(screen is not None).lower(), **({"screen": screen} if screen else {})}
+
+
+def run_level(url: str, key: str, probes: list, clients: int, total: int, mode: str, preprocessed: bool) -> dict:
     """`total` identifications from `clients` threads (one connection each), back to back; every answer must say
     whether the service took the upload as a preprocessed face (`preprocessed`) or preprocessed it."""
     import httpx
@@ -172,7 +181,7 @@ def run_level(url: str, key: str, probes: list, clients: int, total: int, cascad
                 path, truth = probes[i % len(probes)]
                 files = {"probe": (path.name, path.read_bytes())}
                 t0 = time.perf_counter()
-                r = http.post("/v1/identify", files=files, data={"k": "5", "cascade": str(cascade).lower()})
+                r = http.post("/v1/identify", files=files, data=_form(mode))
                 dt = time.perf_counter() - t0
                 with lock:
                     if r.status_code != 200:
@@ -204,7 +213,7 @@ def run_level(url: str, key: str, probes: list, clients: int, total: int, cascad
             "match_p95_ms": float(np.percentile([s["match_ms"] for s in stages], 95))}
 
 
-def cli_calls(gallery: Path, probes: list, calls: int, jobs: int, cascade: bool) -> tuple[list[float], float]:
+def cli_calls(gallery: Path, probes: list, calls: int, jobs: int, mode: str) -> tuple[list[float], float]:
     """Wall seconds of `calls` fresh `facerec3d identify` processes (a new, empty preprocessing cache each), and
     their CPU seconds per call (the process and its workers)."""
     import resource
@@ -216,7 +225,8 @@ def cli_calls(gallery: Path, probes: list, calls: int, jobs: int, cascade: bool)
         path, truth = probes[(7 * i + 3) % len(probes)]
         with tempfile.TemporaryDirectory() as cache:
             cmd = [sys.executable, "-m", "facerec3d.cli", "identify", str(path), "--gallery", str(gallery), "--jobs",
-                   str(jobs), "-k", "5", "--cache", cache] + (["--cascade"] if cascade else [])
+                   str(jobs), "-k", "5", "--cache", cache] + (["--cascade", "--screen", SCREENS[mode]]
+                                                              if SCREENS[mode] else [])
             t0 = time.perf_counter()
             r = subprocess.run(cmd, capture_output=True, text=True)
             out.append(time.perf_counter() - t0)
@@ -235,13 +245,16 @@ def main() -> None:
                     help="requests per level, preprocessed uploads (at least 2 per client)")
     ap.add_argument("--jobs", type=int, default=2, help="worker processes of the service and of the CLI")
     ap.add_argument("--cli-calls", type=int, default=2, help="CLI identify calls per mode")
-    ap.add_argument("--modes", default="cascade,exhaustive")
+    ap.add_argument("--modes", default="cascade,cascade-embedding,exhaustive",
+                    help=f"some of {', '.join(SCREENS)}")
     ap.add_argument("--uploads", default="raw,preprocessed")
     ap.add_argument("--cache", default=str(Path(tempfile.gettempdir()) / "facerec3d-service-bench"))
     ap.add_argument("--json", help="write the figures to this file")
     args = ap.parse_args()
     clients = [int(c) for c in args.clients.split(",")]
     modes = [m.strip() for m in args.modes.split(",")]
+    if unknown := set(modes) - set(SCREENS):
+        raise SystemExit(f"unknown modes {sorted(unknown)}: use some of {', '.join(SCREENS)}")
     kinds = [u.strip() for u in args.uploads.split(",")]
     cache = Path(args.cache)
     cache.mkdir(parents=True, exist_ok=True)
@@ -278,19 +291,17 @@ def main() -> None:
                                  f"edge's {config.digest()}")
             for mode in modes:  # warm-up, not timed: every worker compiles / loads its code, descriptors made
                 for kind in kinds:
-                    run_level(url, key, probes[kind], args.jobs, 2 * args.jobs, mode == "cascade",
-                              kind == "preprocessed")
-            print(f"\n{'mode':>10} {'upload':>12} {'clients':>7} {'requests':>8} {'p50 s':>7} {'p95 s':>7} "
+                    run_level(url, key, probes[kind], args.jobs, 2 * args.jobs, mode, kind == "preprocessed")
+            print(f"\n{'mode':>17} {'upload':>12} {'clients':>7} {'requests':>8} {'p50 s':>7} {'p95 s':>7} "
                   f"{'p99 s':>7} "
                   f"{'req/s':>7} {'core-s/req':>10} {'rank-1':>6}  service: preprocess / match (median ms)", flush=True)
             for mode in modes:
                 for kind in kinds:
                     for c in clients:
                         n = args.requests_preprocessed if kind == "preprocessed" else args.requests
-                        r = run_level(url, key, probes[kind], c, max(n, 2 * c), mode == "cascade",
-                                      kind == "preprocessed")
+                        r = run_level(url, key, probes[kind], c, max(n, 2 * c), mode, kind == "preprocessed")
                         results["service"][f"{mode}/{kind}/{c}"] = r
-                        print(f"{mode:>10} {kind:>12} {c:>7} {r['requests']:>8} {r['p50']:>7.3f} {r['p95']:>7.3f} "
+                        print(f"{mode:>17} {kind:>12} {c:>7} {r['requests']:>8} {r['p50']:>7.3f} {r['p95']:>7.3f} "
                               f"{r['p99']:>7.3f} {r['throughput']:>7.2f} {r['core_s']:>10.2f} {r['rank1']:>6.2f}  "
                               f"{r['preprocess_ms']:.1f} / {r['match_ms']:.1f}"
                               + (f"  ERRORS {len(r['errors'])}: {r['errors'][:2]}" if r["errors"] else ""), flush=True)
@@ -303,7 +314,7 @@ def main() -> None:
     print(f"\nCLI identify per call ({args.cli_calls} calls per mode, --jobs {args.jobs}, raw probe scans):",
           flush=True)
     for mode in modes:
-        times, core_s = cli_calls(gallery, probes["raw"], args.cli_calls, args.jobs, mode == "cascade")
+        times, core_s = cli_calls(gallery, probes["raw"], args.cli_calls, args.jobs, mode)
         results["cli"][mode] = {"calls_s": times, "mean_s": float(np.mean(times)),
                                 "throughput": 1 / float(np.mean(times)), "core_s": core_s}
         print(f"{mode:>10}: {np.mean(times):.1f} s per call ({', '.join(f'{t:.1f}' for t in times)}), "
@@ -321,12 +332,12 @@ def main() -> None:
                       f"{cli['throughput']:.3f} /s); p50 latency {cli['mean_s'] / r['p50']:6.1f}× shorter "
                       f"({r['p50']:.3f} s vs {cli['mean_s']:.1f} s); CPU per identification "
                       f"{cli['core_s'] / r['core_s']:.1f}× less ({r['core_s']:.2f} vs {cli['core_s']:.1f} core-s)")
-    if "cascade" in modes and 1 in clients:
+    for mode in [m for m in modes if SCREENS[m] and 1 in clients]:
         for kind in kinds:
-            r = results["service"][f"cascade/{kind}/1"]
-            cli = results["cli"]["cascade"]
+            r = results["service"][f"{mode}/{kind}/1"]
+            cli = results["cli"][mode]
             ok = r["p95"] <= 0.100 and r["throughput"] >= 20 * cli["throughput"]
-            print(f"\ncascade, {kind} uploads, 1 client: p95 {r['p95'] * 1e3:.0f} ms end to end (target ≤ 100 ms), "
+            print(f"\n{mode}, {kind} uploads, 1 client (rank-1 {r['rank1']:.3f}): p95 {r['p95'] * 1e3:.0f} ms end to end (target ≤ 100 ms), "
                   f"throughput {r['throughput'] / cli['throughput']:.1f}× the CLI's (target ≥ 20×): "
                   f"{'met' if ok else 'NOT met'}; the service spent a median {r['preprocess_ms']:.1f} ms "
                   f"preprocessing (or checking) the upload and {r['match_ms']:.1f} ms matching it "

@@ -243,14 +243,14 @@ def _engine_options(fn):
                         help="Processes to use (the gallery is split into one shard per process).")(fn)
 
 
-def _cascade_options(fn, screens: bool = False):
+def _cascade_options(fn, screens: tuple[str, ...] = ("depth", "embedding")):
     fn = click.option("--shortlist", default=20, show_default=True, type=click.IntRange(min=1),
                       help="With --cascade: faces passed from the screen to full ICP.")(fn)
-    if screens:
-        fn = click.option("--screen", type=click.Choice(["depth", "keypoints"]), default="depth", show_default=True,
-                          help="With --cascade: the first stage (depth descriptor, or keypoint matching §8.10.2).")(fn)
-    return click.option("--cascade", is_flag=True, help="ICP only: screen the gallery cheaply (a depth descriptor) and "
-                        "run full ICP on the shortlist only (faces off it score -inf).")(fn)
+    fn = click.option("--screen", type=click.Choice(screens), default="depth", show_default=True,
+                      help="With --cascade: the first stage (depth descriptor, the learned embedding"
+                           + (", or keypoint matching §8.10.2" if "keypoints" in screens else "") + ").")(fn)
+    return click.option("--cascade", is_flag=True, help="ICP only: screen the gallery cheaply (a depth descriptor or "
+                        "the learned embedding) and run full ICP on the shortlist only (faces off it score -inf).")(fn)
 
 
 def _cascade_config(cascade: bool, shortlist: int, screen: str = "depth"):
@@ -392,7 +392,7 @@ def _bootstrap_options(fn):
 @main.command()
 @click.argument("data", type=click.Path(exists=True))
 @click.option("--method", default=DEFAULT_METHOD, show_default=True,
-              help="Matching method: icp, pca, lda, curvature, region-icp, keypoints, afm, morph-id, fusion.")
+              help="Matching method: icp, pca, lda, curvature, region-icp, keypoints, afm, morph-id, embedding, fusion.")
 @click.option("--method-config", type=click.Path(exists=True, dir_okay=False),
               help="TOML or JSON file of the method's settings (its config dataclass's fields).")
 @click.option("--train", type=click.Path(exists=True),
@@ -408,7 +408,7 @@ def _bootstrap_options(fn):
 @_CACHE_OPTION
 @click.option("--intrinsics", type=click.Path(exists=True, dir_okay=False), default=None,
               help="Depth frames: pinhole intrinsics JSON (fx, fy, cx, cy); default: an intrinsics.json beside them.")
-@functools.partial(_cascade_options, screens=True)
+@functools.partial(_cascade_options, screens=("depth", "embedding", "keypoints"))
 @_bootstrap_options
 @_engine_options
 @friendly
@@ -504,13 +504,14 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
 @_server_options
 @_edge_option
 @friendly
-def identify(probe, gallery, k, config_file, cache, cascade, shortlist, jobs, scheduler, server, api_key,
+def identify(probe, gallery, k, config_file, cache, cascade, shortlist, screen, jobs, scheduler, server, api_key,
              preprocess_locally):
     """The k gallery entries most like scan PROBE, best first (rank, subject, scan, score)."""
     _local_only(server, gallery, "config_file", "cache", "jobs", "scheduler")
     if server:
         with _edge(server, preprocess_locally), _client(server, api_key) as client:
-            answer = client.identify(probe, k, cascade, shortlist, preprocess_locally=preprocess_locally)
+            answer = client.identify(probe, k, cascade, shortlist, preprocess_locally=preprocess_locally,
+                                     screen=screen)
         click.echo(f"{'rank':>4}  {'subject':<12}{'scan':<20}{'score':>12}")
         for c in answer["candidates"]:
             click.echo(f"{c['rank']:>4}  {str(c['subject']):<12}{str(c['scan_id']):<20}{c['score']:>12.4f}")
@@ -522,7 +523,7 @@ def identify(probe, gallery, k, config_file, cache, cascade, shortlist, jobs, sc
 
     config = PreprocessConfig.load(config_file) if config_file else None
     with _one_blas_thread(), GalleryStore(gallery) as store, Engine.create(jobs, scheduler) as engine:
-        hits = identify_scan(store, probe, k=k, cascade=_cascade_config(cascade, shortlist), config=config,
+        hits = identify_scan(store, probe, k=k, cascade=_cascade_config(cascade, shortlist, screen), config=config,
                              engine=engine, cache=_cache_folder(cache))
     click.echo(f"{'rank':>4}  {'subject':<12}{'scan':<20}{'score':>12}")
     for r, (entry, score) in enumerate(hits, start=1):
@@ -743,6 +744,74 @@ def gallery_rekey(store, new_key_file):
         n = s.rekey(new)
     click.echo(f"{store}: {n} arrays encrypted under the key in {new_key_file}; from now on give "
                f"{KEY_FILE_ENV}={new_key_file}")
+
+
+@main.command("train-embedding")
+@click.argument("out", type=click.Path(dir_okay=False))
+@click.option("--identities", default=1200, show_default=True, type=click.IntRange(min=2),
+              help="Synthetic identities (faces no test or benchmark uses).")
+@click.option("--scans", default=6, show_default=True, type=click.IntRange(min=2), help="Scans per identity.")
+@click.option("--sensors", default="frgc,kinect-v2,kinect-v2-8bit,realsense", show_default=True,
+              help="Sensor profiles, drawn per scan (comma-separated).")
+@click.option("--identity-profiles", default="model,outside-model", show_default=True,
+              help="Identity profiles, taken in turn by identity: the model's faces and faces outside its span.")
+@click.option("--epochs", default=40, show_default=True, type=click.IntRange(min=1))
+@click.option("--width", default=24, show_default=True, type=click.IntRange(min=4),
+              help="Channels of the network's first block (doubling per block).")
+@click.option("--seed", default=0, show_default=True, help="Seed of the network's initialisation and batches.")
+@click.option("--data-seed", default=2026, show_default=True, help="Seed of the synthetic faces, poses and sensors.")
+@click.option("--trainset", type=click.Path(dir_okay=False),
+              help="File keeping the preprocessed training faces, reused when its recipe is the same "
+                   "[default: OUT with .trainset.npz].")
+@click.option("--real", type=click.Path(exists=True),
+              help="A dataset of real scans whose people are added as identities (fine-tuning on real faces).")
+@click.option("--real-subjects", help="Of --real, only these subjects: a file with one per line, or 'even' / 'odd' "
+              "(every other subject in sorted order, as benchmarks/real_bench.py's tuning / held-out halves).")
+@click.option("--init", "init", type=click.Path(exists=True, dir_okay=False),
+              help="Start from a model's weights (MODEL.weights.npz, written beside every model).")
+@_CACHE_OPTION
+@click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores",
+              help="Processes making the training faces; torch trains on as many threads.")
+@friendly
+def train_embedding(out, identities, scans, sensors, identity_profiles, epochs, width, seed, data_seed, trainset,
+                    real, real_subjects, init, cache, jobs):
+    """Train the learned embedding on synthetic faces (and --real people) and write OUT (ONNX), its card
+    (OUT with .json) and weights (.weights.npz). Needs the [train] extra (PyTorch); using a model never does:
+    --method embedding with the method setting model = "OUT"."""
+    import dataclasses
+    import json
+
+    from facerec3d.matching.embedding import InputRecipe
+    from facerec3d.training.data import DataRecipe, cached_training_set, real_training_set
+    from facerec3d.training.embedding import TrainConfig, export, train_embedding as train
+    from facerec3d.workers import Workers
+
+    try:
+        recipe = DataRecipe(identities, scans, tuple(s for s in sensors.split(",") if s),
+                            tuple(s for s in identity_profiles.split(",") if s), data_seed)
+    except ValueError as e:
+        raise click.BadParameter(str(e)) from None
+    inputs = InputRecipe()
+    out = Path(out)
+    with Workers.create(jobs) as workers:
+        data = cached_training_set(trainset or out.with_suffix(".trainset.npz"), recipe, inputs, workers)
+        click.echo(f"training faces: {data.info['scans']} of {identities} identities "
+                   f"({data.info['failures']} failed to preprocess)")
+        if real:
+            extra = real_training_set(real, real_subjects, inputs, recipe.margin, workers, _cache_folder(cache),
+                                      first_label=int(data.labels.max()) + 1)
+            click.echo(f"real faces: {extra.info['scans']} of {extra.info['subjects']} people "
+                       f"({extra.info['failures']} failed to preprocess)")
+            data = data.joined(extra)
+    config = TrainConfig(width=width, epochs=epochs, seed=seed, threads=max(1, jobs))
+    net, figures = train(data.windows, data.labels, inputs, recipe.margin, config, init=init)
+    path = export(net, out, inputs, {"command": " ".join(["facerec3d", *sys.argv[1:]]), "data": data.info,
+                                     "train": dataclasses.asdict(config),
+                                     "loss": f"CosFace (s = {config.scale:g}, m = {config.margin:g})",
+                                     "final_loss": figures["final_loss"], "figures": figures,
+                                     "validation": figures.get("validation", {})})
+    click.echo(f"model: {path} (card {path.with_suffix('.json')}); validation "
+               f"{json.dumps(figures.get('validation', {}))}")
 
 
 @main.command()

@@ -156,12 +156,12 @@ class Client:
     enroll = enrol
 
     def identify(self, path: str | os.PathLike, k: int = 5, cascade: bool = False, shortlist: int = 20,
-                 timeout_s: float | None = None, preprocess_locally: bool = False) -> dict:
+                 timeout_s: float | None = None, preprocess_locally: bool = False, screen: str = "depth") -> dict:
         """The k best candidates for a probe scan: {"candidates": [{rank, entry, subject, scan_id, score}], ...}."""
         files, data = self._upload(path, "probe", preprocess_locally)
         headers = {"X-Request-Timeout": str(timeout_s)} if timeout_s else None
         return self._call("POST", "/v1/identify", files,
-                          {**data, **self._form(k=k, cascade=cascade, shortlist=shortlist)}, headers)
+                          {**data, **self._form(k=k, cascade=cascade, shortlist=shortlist, screen=screen)}, headers)
 
     def verify(self, path: str | os.PathLike, claim: str, threshold: float | None = None,
                preprocess_locally: bool = False) -> dict:

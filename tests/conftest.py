@@ -4,6 +4,9 @@ Test modules import the helpers from here (`from tests.conftest import model_fac
 Tests that take minutes are marked `slow` (run by default; `-m "not slow"` leaves them out).
 """
 
+from pathlib import Path
+from typing import NamedTuple
+
 import numpy as np
 import pytest
 
@@ -33,6 +36,33 @@ def model_face(subject: int, expression: str = "neutral", noise_mm: float = 0.2,
     model's true fiducials as landmarks; subject ids "s<n>"."""
     face = frontal_face(subject, noise_mm=noise_mm, seed=len(expression), expression=expression, crop_mm=crop_mm)
     return face.replace(meta=face.meta.replace(subject=f"s{subject}"))
+
+
+class CliData(NamedTuple):
+    """A small synthetic FRGC-layout dataset written by `facerec3d synth`, split for CLI tests."""
+
+    folder: Path
+    gallery: list[Path]  # each subject's first scan
+    probe: Path  # the first subject's second scan (an expression)
+    probe_subject: str
+    other: str  # another enrolled subject
+
+
+def cli_dataset(folder: Path, strength: float, subjects: int = 3, sensor: str | None = None) -> CliData:
+    """`subjects` people × 2 scans (240 × 320, seed 5; the second scan a smile of this strength) via the CLI."""
+    from click.testing import CliRunner
+
+    from facerec3d.cli import main
+
+    extra = ["--sensor", sensor] if sensor else ["--rows", "240", "--cols", "320"]
+    r = CliRunner().invoke(main, ["synth", str(folder), "--subjects", str(subjects), "--scans", "2", *extra,
+                                  "--seed", "5", "--expressions", "smile", "--expression-strength", str(strength),
+                                  str(strength)])
+    assert r.exit_code == 0, r.output
+    rows = [line.split(",") for line in (folder / "manifest.csv").read_text().splitlines()[1:]]
+    probe_subject = rows[1][1]
+    return CliData(folder, [folder / p for p, *_ in rows[::2]], folder / rows[1][0], probe_subject,
+                   next(s for _, s, *_ in rows if s != probe_subject))
 
 
 def faceless_scans() -> dict[str, FaceScan]:

@@ -14,7 +14,7 @@ from facerec3d.matching.base import Template
 from facerec3d.matching.morphable import GeometryImageConfig, MorphIDMatcher, face_fit, geometry_image
 from facerec3d.matching.registry import load_matcher, make_matcher
 from facerec3d.preprocess.pipeline import MODEL_FIT_KEY, PreprocessConfig, Preprocessor
-from tests.conftest import model_face
+from tests.conftest import cli_dataset, model_face
 
 SUBJECTS = (0, 1, 2, 3)
 
@@ -169,14 +169,7 @@ def test_model_methods_through_the_store_and_a_saved_model(tmp_path, faces):
 
 def test_cli_enroll_identify_verify_with_afm_and_morph_id(tmp_path):
     run = CliRunner()
-    data = tmp_path / "d"
-    r = run.invoke(main, ["synth", str(data), "--subjects", "3", "--scans", "2", "--rows", "240", "--cols", "320",
-                          "--seed", "5", "--expressions", "smile", "--expression-strength", "0.8", "0.8"])
-    assert r.exit_code == 0, r.output
-    rows = [line.split(",") for line in (data / "manifest.csv").read_text().splitlines()[1:]]
-    gallery_scans = [data / p for p, s, *_ in rows[::2]]
-    probe, probe_subject = data / rows[1][0], rows[1][1]
-    other = next(s for _, s, *_ in rows if s != probe_subject)
+    _, gallery_scans, probe, probe_subject, other = cli_dataset(tmp_path / "d", 0.8)
     cache = str(tmp_path / "cache")
     for method in ("afm", "morph-id"):
         store = str(tmp_path / f"{method}.sqlite")

@@ -17,6 +17,7 @@ from facerec3d.gallery.store import GalleryError, GalleryStore
 from facerec3d.matching.base import Template
 from facerec3d.matching.icp import ICPConfig, ICPMatcher
 from facerec3d.preprocess.pipeline import PreprocessConfig
+from tests.conftest import cli_dataset
 
 
 def big_template(i: int) -> Template:
@@ -122,13 +123,7 @@ def test_kill_during_enrolment_leaves_earlier_entries_intact(tmp_path):
 
 def test_cli_enroll_identify_verify_and_gallery(tmp_path):
     run = CliRunner()
-    data = tmp_path / "d"
-    r = run.invoke(main, ["synth", str(data), "--subjects", "3", "--scans", "2", "--rows", "240", "--cols", "320",
-                          "--seed", "5", "--expressions", "smile", "--expression-strength", "0.2", "0.2"])
-    assert r.exit_code == 0, r.output
-    rows = [line.split(",") for line in (data / "manifest.csv").read_text().splitlines()[1:]]
-    gallery_scans = [data / p for p, s, *_ in rows[::2]]
-    probe, probe_subject = data / rows[1][0], rows[1][1]
+    _, gallery_scans, probe, probe_subject, other = cli_dataset(tmp_path / "d", 0.2)
     bad = tmp_path / "broken.abs"
     bad.write_text("not a range image\n")
     store, cache = str(tmp_path / "g.sqlite"), str(tmp_path / "cache")
@@ -147,7 +142,6 @@ def test_cli_enroll_identify_verify_and_gallery(tmp_path):
         assert first[:2] == ["1", probe_subject] and len(r.output.splitlines()) == 4
     r = run.invoke(main, ["verify", str(probe), "--gallery", store, "--claim", probe_subject, "--cache", cache])
     assert r.exit_code == 0 and r.output.startswith("accept"), r.output
-    other = next(s for _, s, *_ in rows if s != probe_subject)
     r = run.invoke(main, ["verify", str(probe), "--gallery", store, "--claim", other, "--cache", cache])
     assert r.exit_code == 1 and r.output.startswith("reject"), r.output
     # region ICP normalises over the gallery: verification scores the probe against all of it

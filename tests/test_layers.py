@@ -14,14 +14,14 @@ from facerec3d.matching.registry import METHODS, make_matcher, matcher_class
 ROOT = Path(facerec3d.__file__).parent
 #: Lowest first; a module may import its own layer and those below.
 LAYERS = [
-    {"facerec3d", "errors", "config", "scan", "workers", "facemodel", "render"},
+    {"facerec3d", "errors", "config", "scan", "workers", "facemodel", "models", "render"},
     {"io"},
     {"geometry"},
     {"preprocess"},
     {"datasets"},
     {"matching"},
     {"gallery"},
-    {"evaluation"},
+    {"evaluation", "training"},
     {"server", "client", "cli"},
 ]
 #: (importer, imported) pairs that still run upward, each with the reason.

@@ -7,6 +7,9 @@ one full ICP per enrolled face; this costs one full ICP per shortlisted face).
    move most). Two faces differ by the mean squared depth difference over the `keep` share of their
    common cells that agree best, after removing the median difference (a z shift). One vectorised pass
    over the gallery; the best `shortlist` faces go on.
+   Or (`screen = "embedding"`) the learned embedding (`matching.embedding`): each enrolled face's embedding is
+   made once from its ICP template's points (kept with the gallery's shards like the depth descriptors), the
+   probe's from its face, and the `shortlist` faces of highest cosine go on (about a microsecond per face).
    Or (`screen = "keypoints"`, evaluation only) the keypoint matcher (§8.10.2, `matching.keypoints`):
    the gallery's keypoint templates are made at enrolment and the `shortlist` faces with the most
    consistent keypoint matches go on.
@@ -40,7 +43,7 @@ from facerec3d.matching.keypoints import KeypointMatcher
 from facerec3d.scan import FaceScan
 
 
-SCREENS = ("depth", "keypoints")
+SCREENS = ("depth", "embedding", "keypoints")
 
 
 @dataclass(frozen=True)
@@ -52,7 +55,9 @@ class CascadeConfig:
     min_y_mm: float = -15.0  # mm: ... and at or above this height (the nose tip is at y = 0, +y up)
     keep: float = 0.8  # share of the common cells, those that agree best, that the screen distance uses
     shortlist: int = 20  # faces passed from the screen to full ICP
-    screen: str = "depth"  # "depth" (the descriptor above) or "keypoints" (§8.10.2; evaluation only)
+    screen: str = "depth"  # "depth" (the descriptor above), "embedding" (the learned embedding's cosine) or
+    #                        "keypoints" (§8.10.2; evaluation only)
+    screen_model: str = ""  # the embedding screen's ONNX model; "": the shipped one
 
     def __post_init__(self) -> None:
         if self.shortlist < 1 or not 0 < self.keep <= 1:
@@ -110,8 +115,25 @@ def best(scores: np.ndarray, n: int, tiebreak: np.ndarray | None = None) -> np.n
     return rank(scores, tiebreak)[:n]
 
 
+def _embedder(config: CascadeConfig):
+    from facerec3d.matching.embedding import EmbeddingConfig, EmbeddingMatcher
+
+    return EmbeddingMatcher(EmbeddingConfig(model=config.screen_model))
+
+
+def face_descriptor(face: FaceScan, config: CascadeConfig) -> np.ndarray:
+    """What the screen compares of a probe face: its depth descriptor, or its embedding (unit vector)."""
+    if config.screen == "embedding":
+        return _embedder(config).prepare(face)
+    return depth_descriptor(face.points, config)
+
+
 def template_descriptor(template: Template, config: CascadeConfig) -> np.ndarray:
-    """The depth descriptor of an enrolled (ICP) face."""
+    """The screen's descriptor of an enrolled (ICP) face, from its points."""
+    if config.screen == "embedding":
+        from facerec3d.matching.embedding import face_from_points
+
+        return _embedder(config).prepare(face_from_points(ICPMatcher.gallery_points(template)))
     return depth_descriptor(ICPMatcher.gallery_points(template), config)
 
 
@@ -141,7 +163,11 @@ def _describe(shard: Any, config: CascadeConfig) -> int:
 def _screen(shard: Any, descriptor: np.ndarray, config: CascadeConfig) -> np.ndarray:
     """Stage 1 on one shard: depth-screen distances (mm²) of a probe descriptor to the shard's faces."""
     d = _descriptors(shard, config)
-    return screen_distances(descriptor, d, config.keep) if shard.templates else np.zeros(0)
+    if not shard.templates:
+        return np.zeros(0)
+    if config.screen == "embedding":
+        return 1.0 - d @ descriptor  # cosine distance
+    return screen_distances(descriptor, d, config.keep)
 
 
 class Cascade:
@@ -152,9 +178,9 @@ class Cascade:
         self.screen_gallery = None  # the keypoint screen's gallery (load_screen)
 
     def probe_descriptor(self, face: FaceScan) -> np.ndarray | None:
-        """What the screen needs of a probe face on the gallery's side: its depth descriptor (None for the
-        keypoint screen, which scores the face against its own gallery)."""
-        return depth_descriptor(face.points, self.config) if self.config.screen == "depth" else None
+        """What the screen needs of a probe face on the gallery's side: its depth descriptor or embedding (None for
+        the keypoint screen, which scores the face against its own gallery)."""
+        return None if self.config.screen == "keypoints" else face_descriptor(face, self.config)
 
     def describe(self, gallery: Any) -> None:
         """Make the depth descriptors of a gallery's shards now rather than at its first cascade probe."""
@@ -180,10 +206,10 @@ class Cascade:
         c = self.config
         if screen is not None:
             return [np.sort(best(s, c.shortlist, t)) for s, t in screen]
-        if c.screen != "depth":
+        if c.screen == "keypoints":
             raise ValueError(f"a {c.screen} screen needs that matcher's scores against the gallery (screen=)")
         if any(p.descriptor is None for p in probes):
-            raise ValueError("cascade probes need depth descriptors: Engine.prepare(..., cascade=config)")
+            raise ValueError("cascade probes need screen descriptors: Engine.prepare(..., cascade=config)")
         rows = gallery.per_shard([[(_screen, p.descriptor, c)] * gallery.shards for p in probes])
         return [np.sort(best(-np.concatenate(row), c.shortlist)) for row in rows]
 

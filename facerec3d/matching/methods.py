@@ -14,7 +14,8 @@ from facerec3d.errors import SettingsError
 from facerec3d.matching.base import Matcher
 
 #: Method name → "module:class". Chapter sections: ICP §8.6, PCA §8.7, LDA §8.8, curvature §8.9,
-#: regions and keypoints §8.10, the model-based afm (§8.10.1, §8.10.3) and morph-id (Blanz & Vetter).
+#: regions and keypoints §8.10, the model-based afm (§8.10.1, §8.10.3) and morph-id (Blanz & Vetter), and the
+#: learned embedding (an ONNX network trained on synthetic faces, run with onnxruntime).
 METHODS: dict[str, str] = {
     "icp": "facerec3d.matching.icp:ICPMatcher",
     "pca": "facerec3d.matching.subspace:PCAMatcher",
@@ -24,6 +25,7 @@ METHODS: dict[str, str] = {
     "keypoints": "facerec3d.matching.keypoints:KeypointMatcher",
     "afm": "facerec3d.matching.afm:AFMMatcher",
     "morph-id": "facerec3d.matching.morphable:MorphIDMatcher",
+    "embedding": "facerec3d.matching.embedding:EmbeddingMatcher",
 }
 
 

@@ -661,8 +661,10 @@ def create_app(service: Service):
     @app.post(f"{API}/identify", summary="The best-matching enrolled entries for a probe (scope query)")
     async def identify(request: Request, probe: UploadFile = File(..., description=scan_doc),
                        k: int = Form(5, ge=1, le=1000, description="Candidates to list"),
-                       cascade: bool = Form(False, description="ICP: depth screen, then full ICP on a shortlist"),
+                       cascade: bool = Form(False, description="ICP: a screen, then full ICP on a shortlist"),
                        shortlist: int = Form(20, ge=1, le=100000, description="Cascade shortlist length"),
+                       screen: str = Form("depth", pattern="^(depth|embedding)$",
+                                          description="Cascade screen: depth descriptor or learned embedding"),
                        format: str | None = Form(None), intrinsics: str | UploadFile | None = Form(None)):
         """Candidates best first (rank, entry, subject, scan_id, score: higher is more similar). Under the
         cascade, faces off the shortlist are not listed."""
@@ -670,7 +672,7 @@ def create_app(service: Service):
         if cascade:
             if not live.cascadable:
                 raise ApiError(422, f"the cascade works with the icp method, not {live.matcher.name!r}")
-            config = CascadeConfig(shortlist=shortlist)
+            config = CascadeConfig(shortlist=shortlist, screen=screen)
         if not live.entries:
             raise ApiError(409, "the gallery is empty")
         upload = _upload(probe, format, intrinsics)

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from facerec3d.errors import FaceRec3DError
-from facerec3d.gallery.cascade import CascadeConfig, depth_descriptor
+from facerec3d.gallery.cascade import CascadeConfig, face_descriptor
 from facerec3d.gallery.engine import Probe
 from facerec3d.io import DEPTH_SUFFIXES, READERS, Intrinsics, load_scan
 from facerec3d.matching.base import Matcher, Template
@@ -156,9 +156,9 @@ def probe_job(upload: Upload, max_points: int, config: PreprocessConfig, matcher
     t1 = time.perf_counter()
     face, given = face_of(scan, config, upload.label)
     t2 = time.perf_counter()
-    depth = cascade is not None and cascade.screen == "depth"
+    described = cascade is not None and cascade.screen != "keypoints"
     try:
-        probe = Probe(matcher.prepare(face), depth_descriptor(face.points, cascade) if depth else None)
+        probe = Probe(matcher.prepare(face), face_descriptor(face, cascade) if described else None)
     except ValueError as e:
         raise Rejected(422, f"{upload.label}: {e}") from None
     t3 = time.perf_counter()

@@ -203,8 +203,15 @@ class LiveGallery:
         except ValueError:
             self.cascadable = False
         if self.cascadable:
-            gallery.describe(CascadeConfig())  # the default cascade's descriptors, made now
+            self._describe(gallery)
         self._snap = Snapshot(1, gallery, tuple(entries))
+
+    @staticmethod
+    def _describe(gallery) -> None:
+        """The cascade screens' descriptors (depth, learned embedding) of every enrolled face, made now rather than at
+        the first cascade probe."""
+        for screen in ("depth", "embedding"):
+            gallery.describe(CascadeConfig(screen=screen))
 
     def close(self) -> None:
         """Release the gallery, stop the workers and close the store."""
@@ -369,7 +376,7 @@ class LiveGallery:
         entries = self._store.entries()
         gallery = self.engine.load(self.matcher, self._store.templates(entries))
         if self.cascadable:
-            gallery.describe(CascadeConfig())
+            self._describe(gallery)
         self._install(Snapshot(self._snap.version + 1, gallery, tuple(entries)))
 
     def _install(self, snap: Snapshot) -> None:

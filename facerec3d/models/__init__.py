@@ -1,0 +1,1 @@
+"""The models the package ships (the learned embedding: embedding.onnx and its card embedding.json)."""
