@@ -46,12 +46,13 @@ RANGES: dict[str, tuple[float, float, bool]] = {
 }
 
 
-#: The method `evaluate`, `enroll` and the service use when none is named: the z-score fusion of whole-face ICP and
-#: region ICP (FusionConfig's defaults), chosen across every kind of data at once (`benchmarks/default_bench.py`,
-#: docs/methods.md): the best mean rank-1 over the synthetic sensor profiles, outside-model faces and the
-#: rap3df-2019 held-out half together (where it is 5 points below ICP), and on the unseen real Kinect set of issue 21
-#: (0.746 against ICP's 0.615). Its scores are normalised per probe over the gallery, so its thresholds hardly depend on the
-#: sensor (gallery.service.DEFAULT_THRESHOLDS). A name of matching.registry.METHODS.
+#: The method `evaluate`, `enroll` and the service use when none is named: the z-score fusion of whole-face ICP,
+#: region ICP and the learned embedding (FusionConfig's defaults), chosen across every kind of data at once
+#: (`benchmarks/default_bench.py`, `benchmarks/real_bench.py`, docs/methods.md): the best mean rank-1 over the
+#: synthetic sensor profiles, outside-model faces and the rap3df-2019 held-out half together, and on that held-out
+#: half above the fusion of icp and region-icp it replaced; region ICP stays in it for the unseen real sets of issue
+#: 21, where it was the strongest single method. Its scores are normalised per probe over the gallery, so its
+#: thresholds hardly depend on the sensor (gallery.service.DEFAULT_THRESHOLDS). A name of matching.registry.METHODS.
 DEFAULT_METHOD = "fusion"
 
 

@@ -65,6 +65,44 @@ def cli_dataset(folder: Path, strength: float, subjects: int = 3, sensor: str | 
                    next(s for _, s, *_ in rows if s != probe_subject))
 
 
+def service_identify(tmp_path: Path, matcher, form: dict[str, str]) -> list[dict]:
+    """The service in process (one worker) on a new gallery of `matcher`: three people enrolled from raw scans (near
+    frontal, neutral), then a smiling scan of s1 identified with the `form` fields; returns the candidates."""
+    pytest.importorskip("fastapi")
+    from fastapi.testclient import TestClient
+
+    from facerec3d.gallery.store import GalleryStore
+    from facerec3d.io import save_scan
+    from facerec3d.preprocess.pipeline import PreprocessConfig
+    from facerec3d.server.app import Service, ServiceSettings, create_app
+    from facerec3d.server.keys import KeyFile, add_key
+    from facerec3d.server.live import AuditLog, LiveGallery
+
+    gallery, keys = tmp_path / f"{matcher.name}.sqlite", tmp_path / f"{matcher.name}-keys.json"
+    with GalleryStore(gallery, create=True) as store:
+        store.bind(PreprocessConfig(), matcher)
+    key = add_key(keys, "alice", "enrol,query,admin")
+    scans = {}
+    for s, e in ((0, "neutral"), (1, "neutral"), (2, "neutral"), (1, "smile")):
+        scans[(s, e)] = tmp_path / f"{s}-{e}.npz"
+        save_scan(frontal_face(s, pose_deg=3.0, shift_mm=3.0, noise_mm=0.2, seed=s, expression=e), scans[(s, e)])
+    service = Service(LiveGallery(gallery, 1, audit=AuditLog(None)), KeyFile(keys), ServiceSettings(timeout_s=300))
+    try:
+        with TestClient(create_app(service)) as client:
+            h = {"X-API-Key": key}
+            for s in (0, 1, 2):
+                path = scans[(s, "neutral")]
+                r = client.post("/v1/enrol", headers=h, files={"scan": (path.name, path.read_bytes())},
+                                data={"subject": f"s{s}"})
+                assert r.status_code == 201, r.text
+            probe = scans[(1, "smile")]
+            r = client.post("/v1/identify", headers=h, files={"probe": (probe.name, probe.read_bytes())}, data=form)
+            assert r.status_code == 200, r.text
+            return r.json()["candidates"]
+    finally:
+        service.close()
+
+
 def faceless_scans() -> dict[str, FaceScan]:
     """Range images with no face: a wall, random depths, and an empty scan."""
     r, c = np.mgrid[0:120, 0:160].astype(float)

@@ -14,7 +14,7 @@ from facerec3d.matching.base import Template
 from facerec3d.matching.morphable import GeometryImageConfig, MorphIDMatcher, face_fit, geometry_image
 from facerec3d.matching.registry import load_matcher, make_matcher
 from facerec3d.preprocess.pipeline import MODEL_FIT_KEY, PreprocessConfig, Preprocessor
-from tests.conftest import cli_dataset, model_face
+from tests.conftest import cli_dataset, model_face, service_identify
 
 SUBJECTS = (0, 1, 2, 3)
 
@@ -193,41 +193,8 @@ def test_cli_enroll_identify_verify_with_afm_and_morph_id(tmp_path):
 def test_the_service_enrols_and_identifies_with_afm(tmp_path):
     """The service (in process, one worker) enrols a raw scan with afm and identifies a probe of the same person
     (with another expression) first."""
-    pytest.importorskip("fastapi")
-    from fastapi.testclient import TestClient
-
-    from facerec3d.datasets.frontal import frontal_face
-    from facerec3d.io import save_scan
-    from facerec3d.server.app import Service, ServiceSettings, create_app
-    from facerec3d.server.keys import KeyFile, add_key
-    from facerec3d.server.live import AuditLog, LiveGallery
-
-    gallery, keys = tmp_path / "g.sqlite", tmp_path / "keys.json"
-    with GalleryStore(gallery, create=True) as store:
-        store.bind(PreprocessConfig(), AFMMatcher())
-    key = add_key(keys, "alice", "enrol,query,admin")
-    scans = {}
-    for s, e in ((0, "neutral"), (1, "neutral"), (2, "neutral"), (1, "smile")):
-        scans[(s, e)] = tmp_path / f"{s}-{e}.npz"
-        save_scan(frontal_face(s, pose_deg=3.0, shift_mm=3.0, noise_mm=0.2, seed=s, expression=e), scans[(s, e)])
-    live = LiveGallery(gallery, 1, audit=AuditLog(None))
-    service = Service(live, KeyFile(keys), ServiceSettings(timeout_s=300))
-    try:
-        with TestClient(create_app(service)) as client:
-            h = {"X-API-Key": key}
-            for s in (0, 1, 2):
-                path = scans[(s, "neutral")]
-                r = client.post("/v1/enrol", headers=h, files={"scan": (path.name, path.read_bytes())},
-                                data={"subject": f"s{s}"})
-                assert r.status_code == 201, r.text
-            probe = scans[(1, "smile")]
-            r = client.post("/v1/identify", headers=h, files={"probe": (probe.name, probe.read_bytes())},
-                            data={"k": "3"})
-            assert r.status_code == 200, r.text
-            assert [c["subject"] for c in r.json()["candidates"]][0] == "s1"
-            assert r.json()["candidates"][0]["score"] > r.json()["candidates"][1]["score"]
-    finally:
-        service.close()
+    candidates = service_identify(tmp_path, AFMMatcher(), {"k": "3"})
+    assert candidates[0]["subject"] == "s1" and candidates[0]["score"] > candidates[1]["score"]
 
 
 def test_region_scores_ignore_an_occluded_region(faces):

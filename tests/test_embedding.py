@@ -17,7 +17,7 @@ from facerec3d.matching.embedding import (N_CHANNELS, SHIPPED_MODEL, EmbeddingCo
 from facerec3d.matching.icp import ICPMatcher
 from facerec3d.preprocess.pipeline import PreprocessConfig, Preprocessor
 from facerec3d.scan import MIRRORED
-from tests.conftest import cli_dataset, model_face
+from tests.conftest import cli_dataset, model_face, service_identify
 
 SUBJECTS = tuple(range(8))
 
@@ -208,41 +208,9 @@ def test_cli_evaluate_enroll_identify_verify_and_the_embedding_screen(tmp_path):
 def test_the_service_enrols_and_identifies_with_the_embedding_and_its_screen(tmp_path):
     """The service (in process, one worker): an embedding gallery identifies a smiling probe first, and an ICP
     gallery's cascade with screen=embedding lists only its shortlist, the right face first."""
-    pytest.importorskip("fastapi")
-    from fastapi.testclient import TestClient
-
-    from facerec3d.datasets.frontal import frontal_face
-    from facerec3d.io import save_scan
-    from facerec3d.server.app import Service, ServiceSettings, create_app
-    from facerec3d.server.keys import KeyFile, add_key
-    from facerec3d.server.live import AuditLog, LiveGallery
-
-    keys = tmp_path / "keys.json"
-    key = add_key(keys, "alice", "enrol,query,admin")
-    scans = {}
-    for s, e in ((0, "neutral"), (1, "neutral"), (2, "neutral"), (1, "smile")):
-        scans[(s, e)] = tmp_path / f"{s}-{e}.npz"
-        save_scan(frontal_face(s, pose_deg=3.0, shift_mm=3.0, noise_mm=0.2, seed=s, expression=e), scans[(s, e)])
-    probe = scans[(1, "smile")]
     for matcher, form in ((EmbeddingMatcher(), {"k": "3"}),
                           (ICPMatcher(), {"k": "3", "cascade": "true", "screen": "embedding", "shortlist": "2"})):
-        gallery = tmp_path / f"{matcher.name}.sqlite"
-        with GalleryStore(gallery, create=True) as store:
-            store.bind(PreprocessConfig(), matcher)
-        service = Service(LiveGallery(gallery, 1, audit=AuditLog(None)), KeyFile(keys), ServiceSettings(timeout_s=300))
-        try:
-            with TestClient(create_app(service)) as client:
-                h = {"X-API-Key": key}
-                for s in (0, 1, 2):
-                    path = scans[(s, "neutral")]
-                    r = client.post("/v1/enrol", headers=h, files={"scan": (path.name, path.read_bytes())},
-                                    data={"subject": f"s{s}"})
-                    assert r.status_code == 201, r.text
-                r = client.post("/v1/identify", headers=h, files={"probe": (probe.name, probe.read_bytes())}, data=form)
-                assert r.status_code == 200, r.text
-                candidates = r.json()["candidates"]
-                assert candidates[0]["subject"] == "s1", candidates
-                assert len(candidates) == (2 if "screen" in form else 3)
-                assert candidates[0]["score"] > candidates[1]["score"]
-        finally:
-            service.close()
+        candidates = service_identify(tmp_path, matcher, form)
+        assert candidates[0]["subject"] == "s1", candidates
+        assert len(candidates) == (2 if "screen" in form else 3)
+        assert candidates[0]["score"] > candidates[1]["score"]

@@ -284,7 +284,7 @@ def test_bad_uploads_are_4xx_json_and_the_service_keeps_serving(setup):
     fields = {f for name, schema in openapi["components"]["schemas"].items() if name.startswith("Body_")
               for f in schema["properties"]}
     assert fields == {"scan", "probe", "subject", "scan_id", "format", "intrinsics", "k", "cascade", "shortlist",
-                      "claim", "threshold"}  # nothing names a file on the service
+                      "screen", "claim", "threshold"}  # nothing names a file on the service
     # the failures to enrol were recorded, the service still answers
     listed = call(setup, "GET", "/v1/entries").json()
     assert len(listed["failures"]) >= len(corrupt) and all(f["source"].startswith("upload:") for f in listed["failures"])

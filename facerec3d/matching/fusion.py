@@ -46,7 +46,8 @@ class FusionConfig:
     """Fusion of member methods (§8.10; Jain et al. 2005). Scores are normalised per probe over the gallery
     it is compared with, so a fused score is relative to the templates scored together."""
 
-    members: tuple[str, ...] = ("icp", "region-icp")  # method names (matching.methods)
+    members: tuple[str, ...] = ("icp", "region-icp", "embedding")  # method names (matching.methods); the default
+    #   method's members, chosen across every set (config.DEFAULT_METHOD, docs/methods.md)
     member_options: dict[str, dict[str, Any]] = field(default_factory=dict)  # method name -> its config table
     normalisation: str = "z-score"  # one of normalisation.NORMALISATIONS (z-score: the robust default of Jain et al. 2005)
     rule: str = "sum"  # one of normalisation.RULES (sum: Kittler et al. 1998's most robust rule)
