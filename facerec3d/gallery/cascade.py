@@ -31,7 +31,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import partial
+from functools import lru_cache, partial
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -115,16 +115,18 @@ def best(scores: np.ndarray, n: int, tiebreak: np.ndarray | None = None) -> np.n
     return rank(scores, tiebreak)[:n]
 
 
-def _embedder(config: CascadeConfig):
+@lru_cache(maxsize=4)
+def _embedder(model: str):
+    """The embedding screen's matcher of a model, one per process: its ONNX session is opened once, not per face."""
     from facerec3d.matching.embedding import EmbeddingConfig, EmbeddingMatcher
 
-    return EmbeddingMatcher(EmbeddingConfig(model=config.screen_model))
+    return EmbeddingMatcher(EmbeddingConfig(model=model))
 
 
 def face_descriptor(face: FaceScan, config: CascadeConfig) -> np.ndarray:
     """What the screen compares of a probe face: its depth descriptor, or its embedding (unit vector)."""
     if config.screen == "embedding":
-        return _embedder(config).prepare(face)
+        return _embedder(config.screen_model).prepare(face)
     return depth_descriptor(face.points, config)
 
 
@@ -133,7 +135,7 @@ def template_descriptor(template: Template, config: CascadeConfig) -> np.ndarray
     if config.screen == "embedding":
         from facerec3d.matching.embedding import face_from_points
 
-        return _embedder(config).prepare(face_from_points(ICPMatcher.gallery_points(template)))
+        return _embedder(config.screen_model).prepare(face_from_points(ICPMatcher.gallery_points(template)))
     return depth_descriptor(ICPMatcher.gallery_points(template), config)
 
 
@@ -161,7 +163,8 @@ def _describe(shard: Any, config: CascadeConfig) -> int:
 
 
 def _screen(shard: Any, descriptor: np.ndarray, config: CascadeConfig) -> np.ndarray:
-    """Stage 1 on one shard: depth-screen distances (mm²) of a probe descriptor to the shard's faces."""
+    """Stage 1 on one shard: screen distances of a probe descriptor to the shard's faces (depth: mm²; embedding:
+    1 − cosine)."""
     d = _descriptors(shard, config)
     if not shard.templates:
         return np.zeros(0)
@@ -183,7 +186,7 @@ class Cascade:
         return None if self.config.screen == "keypoints" else face_descriptor(face, self.config)
 
     def describe(self, gallery: Any) -> None:
-        """Make the depth descriptors of a gallery's shards now rather than at its first cascade probe."""
+        """Make the screen descriptors of a gallery's shards now rather than at its first cascade probe."""
         gallery.per_shard([[(_describe, self.config)] * gallery.shards])
 
     def load_screen(self, engine: Any, faces: Sequence[FaceScan]) -> None:
