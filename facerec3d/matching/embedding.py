@@ -23,7 +23,7 @@ A cell is the mean of the seen 1 mm cells under it (averaging `step_mm`² cells 
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -258,10 +258,3 @@ class EmbeddingMatcher(Matcher[np.ndarray]):
     def score(self, probe: FaceScan | np.ndarray, template: Template) -> float:
         return float(self.scores(probe, [template])[0][0])
 
-
-def card_summary(card: Mapping[str, Any]) -> str:
-    """One line about a model card (CLI output)."""
-    v = card.get("validation", {})
-    return (f"{card.get('name', 'model')}: {card.get('embedding_dim', '?')}-d, input "
-            f"{card.get('input', {})}, trained {card.get('epochs', '?')} epochs on "
-            f"{card.get('data', {}).get('scans', '?')} scans; validation rank-1 {v.get('rank1', '?')}")
