@@ -22,12 +22,12 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from numba import njit
 
 from facerec3d.facemodel import load_model
 from facerec3d.matching.base import Matcher, Template, vector_similarity
 from facerec3d.preprocess.pipeline import MODEL_FIT_KEY
 from facerec3d.preprocess.pose import ModelFitConfig, fit_face_model
+from facerec3d.preprocess.resample import front_triangles
 from facerec3d.scan import FaceScan
 
 
@@ -76,35 +76,6 @@ class GeometryImageConfig:
             raise ValueError("cell_mm and max_offset_mm must be positive")
 
 
-@njit(cache=True)
-def _front_triangles(V, tris, x0, y0, cell, size):  # pragma: no cover - compiled
-    """For each cell centre (x0 + j·cell, y0 − i·cell) of a size² grid: the front-most triangle of V over it
-    (−1: none) and its barycentric coordinates."""
-    best = np.full((size, size), -np.inf)
-    tri = np.full((size, size), -1, np.int64)
-    bary = np.zeros((size, size, 3))
-    for k in range(tris.shape[0]):
-        a, b, c = V[tris[k, 0]], V[tris[k, 1]], V[tris[k, 2]]
-        ua, va = (a[0] - x0) / cell, (y0 - a[1]) / cell
-        ub, vb = (b[0] - x0) / cell, (y0 - b[1]) / cell
-        uc, vc = (c[0] - x0) / cell, (y0 - c[1]) / cell
-        area = (ub - ua) * (vc - va) - (uc - ua) * (vb - va)
-        if abs(area) < 1e-12:
-            continue
-        for i in range(max(int(np.ceil(min(va, vb, vc))), 0), min(int(np.floor(max(va, vb, vc))), size - 1) + 1):
-            for j in range(max(int(np.ceil(min(ua, ub, uc))), 0), min(int(np.floor(max(ua, ub, uc))), size - 1) + 1):
-                w1 = ((j - ua) * (vc - va) - (uc - ua) * (i - va)) / area
-                w2 = ((ub - ua) * (i - va) - (j - ua) * (vb - va)) / area
-                w0 = 1.0 - w1 - w2
-                if w0 < -1e-9 or w1 < -1e-9 or w2 < -1e-9:
-                    continue
-                z = w0 * a[2] + w1 * b[2] + w2 * c[2]
-                if z > best[i, j]:
-                    best[i, j], tri[i, j] = z, k
-                    bary[i, j, 0], bary[i, j, 1], bary[i, j, 2] = w0, w1, w2
-    return tri, bary
-
-
 @dataclass(frozen=True, eq=False)
 class UVBasis:
     """The model at the UV grid's points: mean, identity and expression modes (n², 3[, K]), mm, in the frame with
@@ -142,7 +113,7 @@ def uv_basis(config: GeometryImageConfig = GeometryImageConfig()) -> UVBasis:
     face_tris = m.triangles[(m.region[m.triangles] == 0).all(axis=1)].astype(np.int64)
     n, cell = config.size, config.cell_mm
     x0, y0 = -(n - 1) / 2 * cell, config.top_mm
-    tri, bary = _front_triangles(V, face_tris, x0, y0, cell, n)
+    _, tri, bary = front_triangles(V, face_tris, x0, y0, cell, n, n)
     tri, bary = tri.ravel(), bary.reshape(-1, 3)
     inside = tri >= 0
     corners = face_tris[np.maximum(tri, 0)]  # (n², 3) vertex indices

@@ -37,9 +37,13 @@ class ResampleConfig:
 
 
 @njit(cache=True)
-def _rasterize(points, tris, x0, y0, res, rows, cols):  # pragma: no cover - compiled
-    """Front-most z of the triangles over the cell centres (x0 + c·res, y0 − r·res) of a rows × cols grid."""
+def front_triangles(points, tris, x0, y0, res, rows, cols):  # pragma: no cover - compiled
+    """The front-most surface of the triangles over the cell centres (x0 + c·res, y0 − r·res) of a rows × cols
+    grid, seen from +z: (z (−inf: no triangle), the triangle's index (−1: none), its barycentric coordinates
+    (rows, cols, 3)). Preprocessing's resampling keeps z; the geometry images (matching.morphable) the rest."""
     z = np.full((rows, cols), -np.inf)
+    tri = np.full((rows, cols), -1, np.int64)
+    bary = np.zeros((rows, cols, 3))
     for k in range(tris.shape[0]):
         a = points[tris[k, 0]]
         b = points[tris[k, 1]]
@@ -64,8 +68,9 @@ def _rasterize(points, tris, x0, y0, res, rows, cols):  # pragma: no cover - com
                     continue
                 depth = w0 * a[2] + w1 * b[2] + w2 * c[2]
                 if depth > z[r, col]:
-                    z[r, col] = depth
-    return z
+                    z[r, col], tri[r, col] = depth, k
+                    bary[r, col, 0], bary[r, col, 1], bary[r, col, 2] = w0, w1, w2
+    return z, tri, bary
 
 
 def rasterize_depth(points: np.ndarray, triangles: np.ndarray, config: ResampleConfig = ResampleConfig()) -> np.ndarray:
@@ -75,8 +80,8 @@ def rasterize_depth(points: np.ndarray, triangles: np.ndarray, config: ResampleC
 
 
 def _depth_image(points, triangles, x0: float, y0: float, res: float, rows: int, cols: int) -> np.ndarray:
-    """`_rasterize` with NaN where no triangle covers a cell."""
-    z = _rasterize(np.ascontiguousarray(points, np.float64), np.ascontiguousarray(triangles, np.int64),
+    """`front_triangles`' depth with NaN where no triangle covers a cell."""
+    z, _, _ = front_triangles(np.ascontiguousarray(points, np.float64), np.ascontiguousarray(triangles, np.int64),
                    x0, y0, res, rows, cols)
     z[~np.isfinite(z)] = np.nan
     return z
