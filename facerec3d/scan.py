@@ -148,6 +148,13 @@ class FaceScan:
     def resolution(self) -> float:
         """Typical point spacing in mm: median distance to the nearest other point (of up to 20,000 points;
         on a grid, the nearest of the 8 neighbouring pixels, which needs no search)."""
+        known = self.__dict__.get("_resolution")  # measured once per scan (a scan is never changed in place)
+        if known is None:
+            known = self._measure_resolution()
+            object.__setattr__(self, "_resolution", known)
+        return known
+
+    def _measure_resolution(self) -> float:
         n = len(self.points)
         if n < 2:
             return float("nan")

@@ -67,6 +67,28 @@ def wide_index(cloud):
     return GalleryIndex.from_scan(cloud, WIDE)
 
 
+@pytest.mark.parametrize("kind", ["grid", "cloud"])
+def test_voxel_lookup_stores_the_nearest_point_of_every_voxel_centre(mesh, cloud, kind):
+    """Each stored voxel holds a point exactly as near its centre as the nearest gallery point (k-d tree), and
+    every centre with a point within the margin has one: the separable search on a gridded face and the ball
+    scatter on a cloud of points alike."""
+    scan = grid_scan(mesh) if kind == "grid" else cloud
+    g = GalleryIndex.from_scan(scan, ICPConfig(distance_start=30.0))
+    pts = g.points.astype(np.float64)
+    ix, iy = np.divmod(np.arange(g.nx * g.ny), g.ny)
+    runs = np.diff(g.voxel_offset)
+    col = np.repeat(np.arange(g.nx * g.ny), runs)
+    iz = g.voxel_first[col] + (np.arange(len(g.voxel_index)) - g.voxel_offset[col])
+    centres = g.origin + (np.stack([ix[col], iy[col], iz], axis=1) + 0.5) * g.voxel_size
+    truth, _ = cKDTree(pts).query(centres)
+    stored = g.voxel_index.astype(np.int64)
+    has = stored < len(pts)
+    assert has.sum() > 10_000
+    d = np.linalg.norm(pts[stored[has]] - centres[has], axis=1)
+    assert np.allclose(d, truth[has], rtol=0, atol=1e-9)
+    assert (truth[~has] > g.margin - 1e-9).all()  # an empty voxel has no point within the margin
+
+
 @pytest.mark.parametrize("variant", ["point-to-point", "point-to-plane"])
 @pytest.mark.parametrize("angles,shift", MOTIONS)
 def test_exact_motion_recovered(cloud, wide_index, variant, angles, shift):

@@ -10,6 +10,7 @@ smallest eigenvalue of its covariance). Units are those of the points (mm).
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 
@@ -44,16 +45,85 @@ def _local_pca(points: np.ndarray, nb: np.ndarray,
                at: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per point `at` (default all): neighbour count, centroid offset (M, 3), least-variance direction (M, 3),
     neighbourhood radius."""
-    ok = nb >= 0
     centres = points if at is None else points[at]
-    d = np.where(ok[..., None], points[np.where(ok, nb, 0)] - centres[:, None, :], 0.0)
-    count = ok.sum(axis=1)
-    n = np.maximum(count, 1)[:, None]
-    mean = d.sum(axis=1) / n
-    cov = np.einsum("nki,nkj->nij", d, d) / n[..., None] - mean[:, :, None] * mean[:, None, :]
-    _, vecs = np.linalg.eigh(cov)
-    radius = np.sqrt((d * d).sum(axis=2).max(axis=1))
-    return count, mean, vecs[:, :, 0], radius
+    return _local_pca_kernel(points, np.ascontiguousarray(nb, dtype=np.int64), np.ascontiguousarray(centres))
+
+
+@njit(cache=True)
+def _local_pca_kernel(points, nb, centres):  # pragma: no cover - compiled
+    """`_local_pca` compiled: each neighbourhood's offsets from its centre summed in one pass, the covariance
+    E[d dᵀ] − E[d] E[d]ᵀ, and the eigenvector of its least eigenvalue (`_least_eigenvector`)."""
+    m, k = nb.shape
+    count = np.zeros(m, np.int64)
+    mean = np.zeros((m, 3))
+    normal = np.zeros((m, 3))
+    radius = np.zeros(m)
+    cov = np.empty((3, 3))
+    for i in range(m):
+        s = np.zeros(3)
+        ss = np.zeros((3, 3))
+        far = 0.0
+        n = 0
+        for q in range(k):
+            j = nb[i, q]
+            if j < 0:
+                continue
+            d0, d1, d2 = points[j, 0] - centres[i, 0], points[j, 1] - centres[i, 1], points[j, 2] - centres[i, 2]
+            s[0] += d0
+            s[1] += d1
+            s[2] += d2
+            ss[0, 0] += d0 * d0
+            ss[0, 1] += d0 * d1
+            ss[0, 2] += d0 * d2
+            ss[1, 1] += d1 * d1
+            ss[1, 2] += d1 * d2
+            ss[2, 2] += d2 * d2
+            far = max(far, d0 * d0 + d1 * d1 + d2 * d2)
+            n += 1
+        count[i] = n
+        w = max(n, 1)
+        for a in range(3):
+            mean[i, a] = s[a] / w
+        for a in range(3):
+            for b in range(a, 3):
+                cov[a, b] = ss[a, b] / w - mean[i, a] * mean[i, b]
+                cov[b, a] = cov[a, b]
+        normal[i] = _least_eigenvector(cov)
+        radius[i] = np.sqrt(far)
+    return count, mean, normal, radius
+
+
+@njit(cache=True)
+def _least_eigenvector(c):  # pragma: no cover - compiled
+    """The unit eigenvector of the least eigenvalue of a symmetric 3 × 3 matrix: cyclic Jacobi rotations until
+    the off-diagonal vanishes (to rounding; a few sweeps), as in Numerical Recipes §11.1; (1, 0, 0) for zero."""
+    a = c.copy()
+    v = np.eye(3)
+    for _ in range(30):
+        off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+        if off <= 1e-32 * (a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]):
+            break
+        for p, q in ((0, 1), (0, 2), (1, 2)):
+            if a[p, q] == 0.0:
+                continue
+            theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
+            t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+            cs = 1.0 / np.sqrt(t * t + 1.0)
+            sn = t * cs
+            for r in range(3):  # A J
+                ap, aq = a[r, p], a[r, q]
+                a[r, p], a[r, q] = cs * ap - sn * aq, sn * ap + cs * aq
+            for r in range(3):  # Jᵀ (A J)
+                ap, aq = a[p, r], a[q, r]
+                a[p, r], a[q, r] = cs * ap - sn * aq, sn * ap + cs * aq
+            for r in range(3):  # V J
+                vp, vq = v[r, p], v[r, q]
+                v[r, p], v[r, q] = cs * vp - sn * vq, sn * vp + cs * vq
+    least = 0
+    for d in (1, 2):
+        if a[d, d] < a[least, least]:
+            least = d
+    return v[:, least].copy()
 
 
 def estimate_normals(

@@ -218,7 +218,8 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
                                for T in (turns if at_rim else frontal)), key=lambda f: f.inlier_fraction))
     # on quantised depth nearly every placement fits the rigid mean face, so those with a nose standing out of
     # the scan where the mean face puts it go first (the same test that decides below)
-    coarse.sort(key=lambda f: (not is_nose(nose_heights(scan.points, f, config), config),
+    around = _Neighbours(scan, config)
+    coarse.sort(key=lambda f: (not is_nose(nose_heights(around.points(f, _heights_reach(config)), f, config), config),
                                -f.inlier_fraction + head_penalty(f, sub, crown, config)))
     if not coarse or coarse[0].inlier_fraction < config.min_coarse_inliers:
         why = "no face-like surface found" if not coarse else (
@@ -231,14 +232,13 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
             finalists.append(f)
     fits = []
     for f in finalists[: config.finalists]:
-        near = scan.points[np.linalg.norm(scan.points - f.landmarks["nose_tip"], axis=1) <= config.context_mm]
+        near = around.points(f, config.context_mm, exact=True)
         fits.append(fit_face_model(near, f.R, f.t, config.model))
     # the best face-shaped placement wins: a nose standing out of the scanned surface (`nose_heights`) and a
     # face surface the camera could have seen (`seen_share`); ranked by the rigid mean face fitting there (the
     # coarse fit), the full model fitting with a likely identity and the seen share, less the head penalty
-    sight = _SightLines(scan, config)
-    shaped = [(f, c, nose_heights(scan.points, f, config), seen_share(scan, f, config, sight))
-              for f, c in zip(fits, finalists)]
+    shaped = [(f, c, nose_heights(around.points(f, _heights_reach(config)), f, config),
+               seen_share(scan, f, config, around)) for f, c in zip(fits, finalists)]
     shaped.sort(key=lambda x: -(x[1].inlier_fraction + placement_score(x[0], config) + x[3]
                                 - head_penalty(x[0], sub, crown, config)))
     passing = [(f, h[0]) for f, _, h, seen in shaped
@@ -259,7 +259,8 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
         raise FailureToAcquire(why, scan.meta.path)
     # a placement whose face disc the scan hardly covers (a fit to a small patch) goes after those it covers
     pitch = scan.resolution()
-    passing.sort(key=lambda x: disc_coverage(scan.points, x[0], pitch, config) < config.min_disc_coverage)
+    passing.sort(key=lambda x: disc_coverage(around.points(x[0], _disc_reach(config)), x[0], pitch, config)
+                 < config.min_disc_coverage)
     fit, protrusion = passing[0]
     return Detection(fit.landmarks["nose_tip"], fit.R, fit.t, fit.landmarks, fit.rms_mm, fit.inlier_fraction,
                      protrusion, fit.coefficients)
@@ -304,18 +305,40 @@ def head_penalty(fit: ModelFit, sub: FaceScan, crown: np.ndarray, config: Detect
     return config.head_weight * max(0.0, lo - height, height - hi) / 50.0
 
 
-class _SightLines:
-    """The scan's points by their (x, y), searched by `seen_share` (built once for all placements of a scan)."""
+class _Neighbours:
+    """The scan's points by their (x, y), built once for all placements of a scan: the lines of sight of
+    `seen_share`, and the points near a placement's nose for the tests that look at those only."""
 
     def __init__(self, scan: FaceScan, config: DetectConfig):
         from scipy.spatial import cKDTree
 
+        self.scan = scan
         self.tree = cKDTree(scan.points[:, :2])
         self.reach = config.seen_radius_px * scan.resolution()
 
+    def points(self, fit: ModelFit, radius_mm: float, exact: bool = False) -> np.ndarray:
+        """The scan's points within `radius_mm` of the fitted nose tip (3D), in scan order: exactly those when
+        `exact`, else those and the few within 1 mm more (for tests that cut at `radius_mm` in their own frame,
+        whose rounding may differ)."""
+        nose = fit.landmarks["nose_tip"]
+        pts = self.scan.points
+        idx = np.sort(np.asarray(self.tree.query_ball_point(nose[:2], radius_mm + 1.0), dtype=np.int64))
+        d = np.linalg.norm(pts[idx] - nose, axis=1)
+        return pts[idx[d <= (radius_mm if exact else radius_mm + 1.0)]]
+
+
+def _heights_reach(config: DetectConfig) -> float:
+    """How far from the nose tip the points that `nose_heights` looks at lie (mm)."""
+    return config.ring_mm[1] + 20.0
+
+
+def _disc_reach(config: DetectConfig) -> float:
+    """How far from the nose tip the points that `disc_coverage` counts lie (mm)."""
+    return float(np.hypot(60.0, config.context_mm))
+
 
 def seen_share(scan: FaceScan, fit: ModelFit, config: DetectConfig = DetectConfig(),
-               sight: _SightLines | None = None) -> float:
+               sight: _Neighbours | None = None) -> float:
     """Free-space check of a placement: of the fitted model's surface within `seen_radius_mm` of its nose that faces
     the camera (scan frame, looking along −Z), the share the scan agrees with, i.e. has a point within
     `seen_margin_mm` in depth along the line of sight, or nearer (occluding it). A face fitted to an ear or a
@@ -328,7 +351,7 @@ def seen_share(scan: FaceScan, fit: ModelFit, config: DetectConfig = DetectConfi
     v = v[n[:, 2] > 0.3]
     if len(v) == 0:
         return 0.0
-    sight = sight or _SightLines(scan, config)
+    sight = sight or _Neighbours(scan, config)
     d, idx = sight.tree.query(v[:, :2], k=8, distance_upper_bound=sight.reach)
     found = np.isfinite(d)
     z = np.where(found, scan.points[np.minimum(idx, scan.n_points - 1), 2], -np.inf)
@@ -364,7 +387,7 @@ def nose_heights(points: np.ndarray, fit: ModelFit, config: DetectConfig = Detec
     dome height is +inf when the ring is not whole (a face in profile). Measured on the scan only, so a face model
     bent to fit a wall does not make a nose."""
     p = points @ fit.R.T + fit.t
-    p = p[np.linalg.norm(p, axis=1) <= config.ring_mm[1] + 20.0]
+    p = p[np.linalg.norm(p, axis=1) <= _heights_reach(config)]
     r = np.linalg.norm(p[:, :2], axis=1)
     tip = p[r <= config.tip_radius_mm]
     ring = p[(r >= config.ring_mm[0]) & (r <= config.ring_mm[1])]

