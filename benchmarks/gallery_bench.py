@@ -2,6 +2,7 @@
 versus the cascade, on 1 and 2 processes; the 1 → 2 process speed-up; the projected FRGC v2 protocol time.
 
     python benchmarks/gallery_bench.py [--quick] [--sizes 100,466,1000,10000] [--distinct 200] [--probes 2]
+                                       [--against 6c9c085]
 
 What it does, exactly:
 * Faces are synthetic identities made directly in preprocessed form (`facerec3d.datasets.frontal`:
@@ -26,13 +27,19 @@ What it does, exactly:
   matching at the measured 1-process time per probe against 466; then divides by 2 cores assuming the
   measured 1 → 2 process speed-up for matching and ideal scaling (2×) for the rest. Excluded: metrics
   and report writing (seconds).
+* `--against REF` (default 6c9c085, the release before the speed work; '' skips it): the FRGC-size scans are also
+  read, preprocessed and enrolled, and 20 of the bench's faces enrolled, by this tree and by that release in the
+  same run (`benchmarks/release.py`), with the speed-up of each step.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -41,6 +48,10 @@ from facerec3d.gallery.engine import Engine
 from facerec3d.datasets.frontal import frontal_face
 from facerec3d.matching.base import rank
 from facerec3d.matching.icp import ICPMatcher
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import release  # noqa: E402
+from release import RELEASE  # noqa: E402
 
 FRGC_GALLERY, FRGC_PROBES = 466, 3541
 
@@ -84,29 +95,54 @@ def _cpu_seconds(engine: Engine) -> float:
     return total
 
 
+def frgc_size_scans(folder: Path, n: int) -> list[Path]:
+    """n synthetic 480×640 range scans (each subject's expression scan, with pose) written as .abs.gz."""
+    from facerec3d.datasets.synthetic import DatasetConfig, FaceScanner, plan_dataset
+    from facerec3d.io import save_scan
+
+    specs = plan_dataset(DatasetConfig(subjects=n, scans=5, seed=7))[2::5][:n]  # each subject's expression scan
+    scanner = FaceScanner(seed=7)
+    files = [folder / f"{i:02d}.abs.gz" for i in range(len(specs))]
+    for spec, f in zip(specs, files):
+        save_scan(scanner.scan(spec).scan, f)
+    return files
+
+
 def preprocessing_cost(n: int) -> float:
     """Core-seconds to read (.abs.gz) and preprocess one synthetic 480×640 range scan (mean of n, one BLAS
     thread, warmed up)."""
-    import tempfile
-    from pathlib import Path
-
     from threadpoolctl import threadpool_limits
 
-    from facerec3d.datasets.synthetic import DatasetConfig, FaceScanner, plan_dataset
-    from facerec3d.io import load_scan, save_scan
+    from facerec3d.io import load_scan
     from facerec3d.preprocess import Preprocessor
 
-    specs = plan_dataset(DatasetConfig(subjects=n, scans=5, seed=7))[2::5][:n]  # each subject's expression scan
-    scanner, preprocess = FaceScanner(seed=7), Preprocessor()
+    preprocess = Preprocessor()
     with tempfile.TemporaryDirectory() as tmp, threadpool_limits(1):
-        files = [Path(tmp) / f"{i:02d}.abs.gz" for i in range(len(specs))]
-        for spec, f in zip(specs, files):
-            save_scan(scanner.scan(spec).scan, f)
+        files = frgc_size_scans(Path(tmp), n)
         preprocess(load_scan(files[0]))
         t0 = time.process_time()
         for f in files:
             preprocess(load_scan(f))
         return (time.process_time() - t0) / len(files)
+
+
+def against_release(ref: str, faces: list, n: int) -> None:
+    """FRGC-size scans (read, preprocess, enrol) and the bench's frontal faces (enrol) timed with this tree and
+    with release `ref` in the same run (`benchmarks/release.py`)."""
+    from facerec3d.io import save_scan
+
+    print(f"against release {ref} (same files, each version in its own process, one core, steady state):")
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            release.report(f"{n} synthetic 480×640 .abs.gz scans", release.compare(frgc_size_scans(Path(tmp), n), ref=ref),
+                           ref)
+            face_files = [Path(tmp) / f"face{i:03d}.npz" for i in range(min(len(faces), 20))]
+            for face, f in zip(faces, face_files):
+                save_scan(face, f)
+            release.report(f"{len(face_files)} of the bench's faces", release.compare(face_files, ref=ref, faces=True),
+                           ref)
+        except RuntimeError as e:
+            print(f"  not timed: {e}")
 
 
 def main() -> None:
@@ -119,6 +155,8 @@ def main() -> None:
     ap.add_argument("--preprocess-s", type=float, help="preprocessing core-seconds per scan (default: measured "
                     "here on --preprocess-scans synthetic 480×640 range scans)")
     ap.add_argument("--preprocess-scans", type=int, default=8)
+    ap.add_argument("--against", default=RELEASE, help="a release (git commit) timed on the same scans and faces "
+                    "(reading, preprocessing, enrolment); '' for none")
     args = ap.parse_args()
     if args.quick:
         args.sizes, args.distinct, args.probes = "100,466,1000", 100, 2
@@ -144,6 +182,8 @@ def main() -> None:
     print(f"{args.distinct} distinct faces: made in {make_s:.0f} s, enrolled at {enrol_core_s * 1e3:.0f} ms/face "
           f"(core time), {np.mean([t.nbytes for t in distinct]) / 1024:.0f} KiB per template; {args.probes} probes; "
           f"cascade: {cascade}")
+    if args.against:
+        against_release(args.against, faces, args.preprocess_scans)
 
     results = {}  # (size, jobs, mode) -> s per probe (matching)
     cpu = {}  # (size, jobs, mode) -> CPU seconds of all processes for the P probes

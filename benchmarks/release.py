@@ -39,8 +39,8 @@ from facerec3d.io import load_scan
 from facerec3d.matching.methods import make_method
 from facerec3d.preprocess import Preprocessor
 
-files, intrinsics = json.loads(sys.argv[1]), sys.argv[2] or None
-pre, icp = Preprocessor(), make_method("icp")
+files, intrinsics, faces = json.loads(sys.argv[1]), sys.argv[2] or None, sys.argv[3] == "faces"
+pre, icp = (lambda face: face) if faces else Preprocessor(), make_method("icp")
 icp.enroll(pre(load_scan(files[0], intrinsics)))  # compilation and cold caches: not timed
 rows = []
 for f in files:
@@ -80,12 +80,14 @@ def release_tree(ref: str = RELEASE) -> Path:
     return target
 
 
-def time_files(tree: Path | None, files: list[Path], intrinsics: Path | None = None) -> np.ndarray:
+def time_files(tree: Path | None, files: list[Path], intrinsics: Path | None = None, faces: bool = False) -> np.ndarray:
     """(n, 3) seconds per file: read, preprocess, enrol (NaN after a failure to acquire), timed by `tree`'s
-    facerec3d (None: this checkout's) in a child process with one BLAS thread."""
+    facerec3d (None: this checkout's) in a child process with one BLAS thread; `faces`: the files are faces
+    already preprocessed (`.npz`), only read and enrolled (preprocessing 0)."""
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1",
                PYTHONPATH=str(tree or ROOT))
-    out = subprocess.run([sys.executable, "-c", _CHILD, json.dumps([str(f) for f in files]), str(intrinsics or "")],
+    out = subprocess.run([sys.executable, "-c", _CHILD, json.dumps([str(f) for f in files]), str(intrinsics or ""),
+                          "faces" if faces else "scans"],
                          env=env, capture_output=True, text=True, cwd=tempfile.gettempdir())
     if out.returncode:
         raise RuntimeError(f"timing with {tree or ROOT} failed: {out.stderr.strip().splitlines()[-1:]}")
@@ -96,9 +98,12 @@ def time_files(tree: Path | None, files: list[Path], intrinsics: Path | None = N
     return np.array([[np.nan if v is None else v for v in row] for row in result["rows"]], dtype=float)
 
 
-def compare(files: list[Path], intrinsics: Path | None = None, ref: str = RELEASE) -> dict[str, tuple[float, float]]:
-    """{"preprocess" | "enrol" | "read": (median ms of this tree, median ms of release `ref`)} over `files`."""
-    here, then = time_files(None, files, intrinsics), time_files(release_tree(ref), files, intrinsics)
+def compare(files: list[Path], intrinsics: Path | None = None, ref: str = RELEASE,
+            faces: bool = False) -> dict[str, tuple[float, float]]:
+    """{"preprocess" | "enrol" | "read": (median ms of this tree, median ms of release `ref`)} over `files`
+    (`time_files`)."""
+    here = time_files(None, files, intrinsics, faces)
+    then = time_files(release_tree(ref), files, intrinsics, faces)
     names = ("read", "preprocess", "enrol")
     return {name: (float(np.nanmedian(here[:, k])) * 1e3, float(np.nanmedian(then[:, k])) * 1e3)
             for k, name in enumerate(names)}
@@ -108,6 +113,8 @@ def report(label: str, figures: dict[str, tuple[float, float]], ref: str = RELEA
     """One line per step: this tree's median ms, the release's, and the speed-up (release ÷ this tree)."""
     for name in ("preprocess", "enrol", "read"):
         now, then = figures[name]
+        if not now and not then:
+            continue
         print(f"  {label}, {name}: {now:.0f} ms per file, release {ref} {then:.0f} ms: {then / now:.2f}× as fast "
               f"(median, one core, steady state)")
 

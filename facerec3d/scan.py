@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 
 #: `FaceScan.provenance` values: where a point of a face comes from.
@@ -160,11 +161,7 @@ class FaceScan:
             return float("nan")
         sample = np.arange(n) if n <= 20000 else np.random.default_rng(0).choice(n, 20000, replace=False)
         if self.grid is not None and self.grid_shape is not None:
-            idx = np.pad(self.index_image(), 1, constant_values=-1)
-            r, c = self.grid[sample, 0] + 1, self.grid[sample, 1] + 1
-            nb = np.stack([idx[r + dr, c + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc], axis=1)
-            diff = self.points[np.maximum(nb, 0)] - self.points[sample, None]
-            d2 = np.where(nb >= 0, np.einsum("nki,nki->nk", diff, diff), np.inf).min(axis=1)
+            d2 = _nearest_neighbour_pixel_d2(self.points, self.grid, self.index_image(), sample)
             if np.isfinite(d2).any():
                 return float(np.sqrt(np.median(d2[np.isfinite(d2)])))
         from scipy.spatial import cKDTree
@@ -255,3 +252,24 @@ class FaceScan:
         who = self.meta.scan_id or self.meta.path or "scan"
         grid = f", grid {self.grid_shape[0]}x{self.grid_shape[1]}" if self.grid is not None else ""
         return f"FaceScan({who}: {self.n_points} points{grid}, {len(self.landmarks)} landmarks)"
+
+
+@njit(cache=True)
+def _nearest_neighbour_pixel_d2(points, grid, index, sample):  # pragma: no cover - compiled
+    """For each sampled point, the squared distance (mm²) to the nearest point among its 8 neighbouring pixels
+    (inf without one)."""
+    rows, cols = index.shape
+    out = np.full(sample.shape[0], np.inf)
+    for k in range(sample.shape[0]):
+        i = sample[k]
+        r, c = grid[i, 0], grid[i, 1]
+        for dr in range(-1, 2):
+            for dc in range(-1, 2):
+                rr, cc = r + dr, c + dc
+                if (dr or dc) and 0 <= rr < rows and 0 <= cc < cols and index[rr, cc] >= 0:
+                    j = index[rr, cc]
+                    dx = points[j, 0] - points[i, 0]
+                    dy = points[j, 1] - points[i, 1]
+                    dz = points[j, 2] - points[i, 2]
+                    out[k] = min(out[k], dx * dx + dy * dy + dz * dz)
+    return out
