@@ -144,6 +144,32 @@ def test_no_small_file_makes_a_command_exceed_1_gib(tmp_path):
     assert peak < GiB_KB and code == 0, f"convert: {peak / 1024:.0f} MiB {err}"
 
 
+def test_meshes_are_refused_before_a_library_reads_too_much(tmp_path, monkeypatch):
+    """trimesh parses a whole OBJ / OFF / STL at ~9× its size and plyfile allocates what a PLY header announces:
+    a file over MAX_MESH_BYTES, or a PLY header announcing more than MAX_POINTS vertices (more bytes' worth than
+    the file holds or not), is one line naming the file; files within the limits read."""
+    import facerec3d.io.mesh as mesh_io
+    from facerec3d.errors import ScanFormatError
+    from facerec3d.io import load_scan
+
+    obj = tmp_path / "face.obj"
+    obj.write_text("".join(f"v {i} {i % 7} {i % 5}\n" for i in range(60))
+                   + "".join(f"f {i} {i + 1} {i + 2}\n" for i in range(1, 59)))
+    assert load_scan(obj).n_points == 60
+    monkeypatch.setattr(mesh_io, "MAX_MESH_BYTES", obj.stat().st_size - 1)
+    with pytest.raises(ScanFormatError, match=r"face\.obj.*absurd size: more than \d+ bytes"):
+        load_scan(obj)
+    monkeypatch.setattr(mesh_io, "MAX_POINTS", 50)
+    head = "ply\nformat binary_little_endian 1.0\nelement vertex {}\nproperty float x\nproperty float y\n" \
+           "property float z\nend_header\n"
+    ply = tmp_path / "cloud.ply"
+    ply.write_bytes(head.format(51).encode() + bytes(51 * 12))
+    with pytest.raises(ScanFormatError, match=r"cloud\.ply.*absurd size: 51 vertex elements \(more than 50\)"):
+        load_scan(ply)
+    ply.write_bytes(head.format(50).encode() + bytes(50 * 12))
+    assert load_scan(ply).n_points == 50
+
+
 def test_abs_body_is_streamed_and_checked_as_it_is_read(tmp_path):
     header = b"1000 rows\n1000 columns\npixels (flag X Y Z):\n"
     (tmp_path / "short.abs").write_bytes(header + b"1 0 1\n")

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from facerec3d.errors import ScanFormatError
-from facerec3d.io.common import library_errors, open_binary, point_scan, read_bytes
+from facerec3d.io.common import MAX_MESH_BYTES, MAX_POINTS, library_errors, open_binary, point_scan, read_bytes
 from facerec3d.scan import FaceScan
 
 GRID_COMMENT = "facerec3d grid_shape"
@@ -26,7 +26,9 @@ TRIANGLES = {"face": {"vertex_indices": 3, "vertex_index": 3}}  # lets plyfile m
 
 
 def _check_ply_header(path: str | Path) -> None:
-    """Refuse a file without PLY header, or whose header announces more elements than the file has bytes.
+    """Refuse a file without PLY header, or whose header announces more elements than the file has bytes, more
+    than MAX_POINTS vertices or more than 4 × MAX_POINTS of any other element (a grid of MAX_POINTS pixels has
+    fewer than 2 × MAX_POINTS triangles).
 
     This runs before plyfile, which allocates whatever the header announces.
     """
@@ -39,6 +41,10 @@ def _check_ply_header(path: str | Path) -> None:
     for name, count in PLY_ELEMENT_LINE.findall(head[:end]):
         if not count.isdigit() or int(count) > size:
             raise ScanFormatError(path, f"bad PLY header: {count[:20]!r} {name[:20]!r} elements in {size} bytes")
+        most = MAX_POINTS if name == b"vertex" else 4 * MAX_POINTS
+        if int(count) > most:
+            raise ScanFormatError(path, f"absurd size: {int(count)} {name[:20].decode(errors='replace')} elements "
+                                        f"(more than {most})")
 
 
 def _stack(vertex: np.ndarray, names: tuple[str, str, str], dtype) -> np.ndarray | None:
@@ -145,14 +151,15 @@ def read_mesh(path: str | Path) -> FaceScan:
     """An OBJ, OFF or STL mesh or point cloud: its vertices, with vertex colours when the file has them.
 
     Normals are not taken from these files (trimesh does not tell stored from computed ones);
-    matchers estimate them from the points.
+    matchers estimate them from the points. trimesh parses the whole file, so files over MAX_MESH_BYTES are refused
+    before it does.
 
     STL repeats each vertex for every triangle; those repeats are merged (the order of the points is then lost).
     """
     import trimesh
 
     suffix = Path(path).suffix.lower().lstrip(".")
-    data = read_bytes(path)
+    data = read_bytes(path, MAX_MESH_BYTES)
     normals = colors = mesh = None
     with library_errors(path, f"{suffix.upper()} file"):
         geometry = trimesh.load(io.BytesIO(data), file_type=suffix, process=False)
