@@ -10,7 +10,7 @@ Augmentation on top of what the synthetic scanner and preprocessing already give
 shifted by up to `margin` cells (alignment error), mirrored left–right half of the time, turned in the image
 plane (roll residue, σ 4°, half of the time), tilted (yaw / pitch residue, σ 4°), depth noise, a missing side (self-occlusion beyond the data's poses) and a missing patch (occluders).
 
-Output: `OUT` (ONNX, opset 17), `OUT` with `.json` (the card: input and data recipes, seed, epochs, loss and
+Output: `OUT` (ONNX, opset 18; 17 with a torch before 2.5), `OUT` with `.json` (the card: input and data recipes, seed, epochs, loss and
 validation figures) and `.weights.npz` (the weights as plain arrays, no pickle: `--init` fine-tunes from them).
 """
 
@@ -236,12 +236,13 @@ def export(net: EmbeddingNet, out: str | Path, recipe: InputRecipe, card: dict[s
     out.parent.mkdir(parents=True, exist_ok=True)
     net.eval()
     dummy = torch.zeros(1, N_CHANNELS, recipe.size, recipe.size)
-    kwargs: dict[str, Any] = {"input_names": ["face"], "output_names": ["embedding"], "opset_version": 17,
-                              "dynamic_axes": {"face": {0: "batch"}, "embedding": {0: "batch"}}}
-    try:
-        torch.onnx.export(net, (dummy,), str(out), dynamo=False, **kwargs)
-    except TypeError:  # a torch without the dynamo switch
-        torch.onnx.export(net, (dummy,), str(out), **kwargs)
+    names: dict[str, Any] = {"input_names": ["face"], "output_names": ["embedding"]}
+    try:  # torch.export's exporter (onnxscript), one self-contained file, the batch axis free
+        torch.onnx.export(net, (dummy,), str(out), dynamo=True, external_data=False, verbose=False, opset_version=18,
+                          dynamic_shapes=({0: torch.export.Dim("batch")},), **names)
+    except TypeError:  # a torch before 2.5 knows only the TorchScript exporter
+        torch.onnx.export(net, (dummy,), str(out), opset_version=17,
+                          dynamic_axes={"face": {0: "batch"}, "embedding": {0: "batch"}}, **names)
     card = {"name": out.stem, "format": "onnx", "embedding_dim": net.head[-1].num_features,
             "input": asdict(recipe), "license": "MIT", **card}
     card_path(out).write_text(json.dumps(card, indent=1) + "\n")
