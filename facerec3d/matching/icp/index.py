@@ -230,21 +230,12 @@ def _voxel_nearest_rows(points, order, row_start, origin, h, nx, ny, nz, radius)
                     vertex[n], offset[n], which[n] = points[j, 1], dz * dz, j
                     n += 1
             k = _lower_envelope(vertex, offset, n, env, cut)
-            e = 0
-            for iy in range(ny if k else 0):
-                cy = origin[1] + (iy + 0.5) * h
-                while cut[e + 1] < cy:
-                    e += 1
-                q = env[e]
-                dy = cy - vertex[q]
-                d2 = dy * dy + offset[q]
-                if d2 <= r2:
-                    plane[iy, iz, r] = d2
-                    near[iy, iz, r] = which[q]
+            _read_envelope(vertex, offset, which, env, cut, k, origin[1], h, r2, plane[:, iz, r], near[:, iz, r])
     x = np.empty(R)
     for r in range(R):
         x[r] = points[order[row_start[r]], 0]
     nearest = np.full((nx, ny, nz), -1, dtype=np.int32)
+    dist = np.empty(nx)
     for iy in range(ny):
         for iz in range(nz):
             n = 0
@@ -253,16 +244,25 @@ def _voxel_nearest_rows(points, order, row_start, origin, h, nx, ny, nz, radius)
                     vertex[n], offset[n], which[n] = x[r], plane[iy, iz, r], near[iy, iz, r]
                     n += 1
             k = _lower_envelope(vertex, offset, n, env, cut)
-            e = 0
-            for ix in range(nx if k else 0):
-                cx = origin[0] + (ix + 0.5) * h
-                while cut[e + 1] < cx:
-                    e += 1
-                q = env[e]
-                dx = cx - vertex[q]
-                if dx * dx + offset[q] <= r2:
-                    nearest[ix, iy, iz] = which[q]
+            _read_envelope(vertex, offset, which, env, cut, k, origin[0], h, r2, dist, nearest[:, iy, iz])
     return nearest
+
+
+@njit(cache=True, inline="always")
+def _read_envelope(vertex, offset, which, env, cut, k, lo, h, r2, dist, index):  # pragma: no cover - compiled
+    """The envelope of `_lower_envelope` (k parabolas) read at the centres u = lo + (i + ½) h, i < len(index): where
+    its value is within r2, dist[i] = the value and index[i] = `which` of the parabola lowest there."""
+    e = 0
+    for i in range(index.shape[0] if k else 0):
+        u = lo + (i + 0.5) * h
+        while cut[e + 1] < u:
+            e += 1
+        q = env[e]
+        du = u - vertex[q]
+        d2 = du * du + offset[q]
+        if d2 <= r2:
+            dist[i] = d2
+            index[i] = which[q]
 
 
 @njit(cache=True)
