@@ -134,8 +134,8 @@ def against_release(ref: str, faces: list, n: int) -> None:
     print(f"against release {ref} (same files, each version in its own process, one core, steady state):")
     with tempfile.TemporaryDirectory() as tmp:
         try:
-            release.report(f"{n} synthetic 480×640 .abs.gz scans", release.compare(frgc_size_scans(Path(tmp), n), ref=ref),
-                           ref)
+            scans = frgc_size_scans(Path(tmp), n)
+            release.report(f"{n} synthetic 480×640 .abs.gz scans", release.compare(scans, ref=ref), ref)
             face_files = [Path(tmp) / f"face{i:03d}.npz" for i in range(min(len(faces), 20))]
             for face, f in zip(faces, face_files):
                 save_scan(face, f)

@@ -154,13 +154,12 @@ def voxel_nearest(points: np.ndarray, origin: np.ndarray, h: float, dims: tuple[
     of equally near points, either).
 
     A preprocessed face lies on an x–y grid: its points fall in rows of one x, with one point per y in a row.
-    Then the squared distance separates, (x − xᵣ)² + (y − yₖ)² + (z − zₖ)², and the search is the separable
-    distance transform of Felzenszwalb & Huttenlocher (Theory of Computing 2012) with these points as
-    sites:
-    the lower envelope of parabolas along y within each row, then along x across the rows
-    (`_voxel_nearest_rows`): 20× faster on a Kinect face (whose lookup reaches 26 mm) and 6× on a laser
-    scan's than visiting every voxel of each point's ball
-    (`_voxel_nearest_balls`), which any other cloud of points gets."""
+    Then the squared distance separates, (x − xᵣ)² + (y − yₖ)² + (z − zₖ)², and the search is the
+    separable distance transform of Felzenszwalb & Huttenlocher (Theory of Computing 2012) with these points
+    as sites: the lower envelope of parabolas along y within each row, then along x across the rows
+    (`_voxel_nearest_rows`), 20× faster on a Kinect face (whose lookup reaches 26 mm) and 6× on a laser
+    scan than visiting every voxel of each point's ball (`_voxel_nearest_balls`), which any other cloud of
+    points gets."""
     nx, ny, nz = dims
     order = np.lexsort((np.arange(len(points)), points[:, 1], points[:, 0]))
     x = points[order, 0]
