@@ -4,8 +4,8 @@ The nose tip is not taken as the point of largest Z (spikes, hair, chin and
 shoulders can be nearer than the nose). Candidates (`nose_candidates`,
 `silhouette_candidates`) are the points that protrude most from their
 surroundings on a ~2 mm sub-sampled range image, along Z and along the local
-surface normal, those standing out at the rim of the data, and the head's
-leftmost and rightmost points at nose height (a head in profile). Each is
+surface normal, those standing out at the rim of the data, and the peaks of
+each head's outline at nose height (a head in profile; `silhouette_candidates`). Each is
 verified by a rigid fit of the morphable model's mean face from a Hotelling
 frame turned by a few yaws; the best distinct placements get a full fit of
 the model (pose, identity, expression; `pose.fit_face_model`), which gives
@@ -69,8 +69,15 @@ class DetectConfig:
     crown_mm: tuple[float, float] = (30.0, 190.0)  # a nose tip lies this far below the top of its head (upright) ...
     crown_reach_mm: float = 250.0  # ... the highest point this far sideways or less ...
     crown_depth_mm: float = 400.0  # ... and this far in depth (not the wall behind)
+    heads: int = 2  # profile candidates are looked for on the largest surfaces ...
+    min_head_area_mm2: float = 8000.0  # ... of at least this area (a head seen from any side: ~30,000) ...
+    join_mm: float = 15.0  # ... whose neighbouring pixels lie this near in 3D
+    profile_step_mm: float = 20.0  # a nose in profile stands out of the head's outline this far above and below ...
+    min_profile_peak_mm: float = 4.0  # ... by at least this much (its bridge and upper lip lie ~10 mm behind it)
+    profile_peaks: int = 2  # peaks per side of each head, beside its outermost point
     head_weight: float = 0.5  # placement penalty per 50 mm outside crown_mm
-    finalists: int = 4  # the best distinct coarse placements get a full fit ...
+    finalists: int = 6  # the best distinct coarse placements get a full fit (6, not 4: with the profile candidates
+    #                     the frontal nose of a bowed head was left out of 4 on rap3df-2019) ...
     identity_penalty: float = 0.1  # ... and the best `placement_score` wins: the identity prior regularises, never gates
     coarse: ModelFitConfig = field(default_factory=lambda: ModelFitConfig(
         identity_modes=0, expression_modes=False, iterations=15, start_distance_mm=20.0, end_distance_mm=5.0,
@@ -204,18 +211,19 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
         raise ValueError("face detection needs a range-image grid (see preprocess.gridify)")
     sub, cands, rim = nose_candidates(scan, config)
     crown = crown_heights(sub, config)
-    profile = silhouette_candidates(sub, crown, config)
-    cands, rim = list(cands) + profile, list(rim) + [True] * len(profile)
     turns = [rotation_from_euler(yaw, 0.0, 0.0) for yaw in config.start_yaws]
     frontal = [T for T, yaw in zip(turns, config.start_yaws) if abs(yaw) <= config.frontal_yaw]
+    profile = silhouette_candidates(sub, config)
+    cands = list(cands) + profile
+    starts = [turns if at_rim else frontal for at_rim in rim] + [turns] * len(profile)
     coarse: list[ModelFit] = []
-    for i, at_rim in zip(cands, rim):
+    for i, trials in zip(cands, starts):
         c = sub.points[i]
         near = sub.points[np.linalg.norm(sub.points - c, axis=1) <= config.context_mm]
         if len(near) >= 50:
             R0 = hotelling_rotation(near[np.linalg.norm(near - c, axis=1) <= 0.6 * config.context_mm])
-            coarse.append(max((fit_face_model(near, T @ R0, -(T @ R0) @ c, config.coarse)
-                               for T in (turns if at_rim else frontal)), key=lambda f: f.inlier_fraction))
+            coarse.append(max((fit_face_model(near, T @ R0, -(T @ R0) @ c, config.coarse) for T in trials),
+                              key=lambda f: f.inlier_fraction))
     # on quantised depth nearly every placement fits the rigid mean face, so those with a nose standing out of
     # the scan where the mean face puts it go first (the same test that decides below)
     around = _Neighbours(scan, config)
@@ -281,17 +289,89 @@ def crown_heights(sub: FaceScan, config: DetectConfig = DetectConfig()) -> np.nd
     return top[ix, iz]
 
 
-def silhouette_candidates(sub: FaceScan, crown: np.ndarray, config: DetectConfig = DetectConfig()) -> list[int]:
-    """The leftmost and rightmost points at nose height below their crown (`crown_mm`), among the points within
-    `crown_depth_mm` of the nearest one (the person, not the wall behind): the nose tip of a head in profile,
-    which no window-based protrusion sees."""
-    depth = crown - sub.points[:, 1]
-    near = sub.points[:, 2] >= sub.points[:, 2].max() - config.crown_depth_mm
-    band = np.flatnonzero(near & (depth >= config.crown_mm[0] + 30.0) & (depth <= config.crown_mm[1] - 30.0))
-    if len(band) < 30:
-        return []
-    x = sub.points[band, 0]
-    return [int(band[np.argmin(x)]), int(band[np.argmax(x)])]
+def head_regions(sub: FaceScan, config: DetectConfig = DetectConfig()) -> list[np.ndarray]:
+    """The heads of the scan: of each of its `heads` largest surfaces (pixels joined when their points lie within
+    `join_mm` in 3D; at least `min_head_area_mm2`), the part at most `crown_mm[1]` below its highest point that is
+    joined to that point (the head and, on a person, the top of the neck; a shoulder or an arm that only the body
+    joins to the head, and flying pixels, are left out). Each as indices into `sub`, its highest point first."""
+    labels = _surfaces(sub, config.join_mm)
+    sizes = np.bincount(labels)
+    y = sub.points[:, 1]
+    cell = sub.resolution() ** 2
+    heads = []
+    for label in np.argsort(-sizes)[: config.heads]:
+        if sizes[label] * cell < config.min_head_area_mm2:
+            break
+        members = labels == label
+        top = int(np.flatnonzero(members)[np.argmax(y[members])])
+        slab = members & (y >= y[top] - config.crown_mm[1])
+        joined = _surfaces(sub, config.join_mm, slab)
+        head = np.flatnonzero(slab & (joined == joined[top]))
+        heads.append(np.r_[top, head[head != top]])
+    return heads
+
+
+def _surfaces(sub: FaceScan, join_mm: float, keep: np.ndarray | None = None) -> np.ndarray:
+    """Connected surfaces of a grid scan: label of each point (pixels 8-connected when their points lie within
+    `join_mm`; points not in `keep` each alone)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    index = sub.index_image()
+    if keep is not None:
+        index = np.where((index >= 0) & keep[np.maximum(index, 0)], index, -1)
+    h, w = index.shape
+    pairs = []
+    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        i = index[: h - dr, max(0, -dc): w - max(0, dc)].ravel()
+        j = index[dr:, max(0, dc): w + min(0, dc)].ravel()
+        both = (i >= 0) & (j >= 0)
+        i, j = i[both], j[both]
+        near = np.linalg.norm(sub.points[i] - sub.points[j], axis=1) <= join_mm
+        pairs.append((i[near], j[near]))
+    i, j = (np.concatenate(k) for k in zip(*pairs))
+    graph = coo_matrix((np.ones(len(i)), (i, j)), shape=(sub.n_points, sub.n_points))
+    return connected_components(graph, directed=False)[1]
+
+
+def silhouette_candidates(sub: FaceScan, config: DetectConfig = DetectConfig()) -> list[int]:
+    """Nose tips of heads in profile, which no window-based protrusion sees: on each head (`head_regions`), the
+    outline seen from the left and from the right (each 2 mm slice of height's outermost point) between
+    `crown_mm[0] + 30` and `crown_mm[1] - 30` mm below the top of the head; its outermost point, and its peaks, the
+    `profile_peaks` points standing out most, by at least `min_profile_peak_mm`, beyond the outline
+    `profile_step_mm` above and below them (a nose stands ~10 mm beyond its bridge and its upper lip; the back of a
+    head and a shoulder rising from the slice below form none, but ears and curls do, which the placement tests
+    reject). Indices into `sub`. On rap3df-2019 these found the nose of ~30 heads turned 60–90° that the earlier candidates (the leftmost and
+    rightmost points of the whole scan at nose height: a shoulder, flying pixels) missed."""
+    spacing = 2.0
+    step = int(round(config.profile_step_mm / spacing))
+    lo, hi = int((config.crown_mm[0] + 30.0) / spacing), int((config.crown_mm[1] - 30.0) / spacing)
+    found: list[int] = []
+    for head in head_regions(sub, config):
+        slices = np.floor((sub.points[head[0], 1] - sub.points[head, 1]) / spacing).astype(np.int64)
+        for side in (-1.0, 1.0):
+            out = side * sub.points[head, 0]  # how far out on this side
+            outline = np.full(slices.max() + 1, -np.inf)
+            np.maximum.at(outline, slices, out)
+            at = np.full(len(outline), -1)
+            at[slices[out == outline[slices]]] = head[out == outline[slices]]
+            band = np.arange(lo, min(hi, len(outline)))
+            band = band[np.isfinite(outline[band])]
+            if len(band) == 0:
+                continue
+            found.append(int(at[band[np.argmax(outline[band])]]))
+            inner = np.arange(max(lo, step), min(hi, len(outline) - step))
+            above, below = outline[inner - step], outline[inner + step]
+            peak = np.where(np.isfinite(above) & np.isfinite(below) & np.isfinite(outline[inner]),
+                            outline[inner] - np.maximum(above, below), -np.inf)
+            peaks: list[int] = []
+            for k in np.argsort(-peak):
+                if peak[k] < config.min_profile_peak_mm or len(peaks) == config.profile_peaks:
+                    break
+                if all(abs(inner[k] - q) > step for q in peaks):
+                    peaks.append(int(inner[k]))
+            found += [int(at[r]) for r in peaks]
+    return list(dict.fromkeys(found))
 
 
 def head_penalty(fit: ModelFit, sub: FaceScan, crown: np.ndarray, config: DetectConfig = DetectConfig()) -> float:
@@ -377,7 +457,8 @@ def disc_coverage(points: np.ndarray, fit: ModelFit, pitch: float, config: Detec
 
 def nose_heights(points: np.ndarray, fit: ModelFit, config: DetectConfig = DetectConfig()) -> tuple[float, float]:
     """How far (mm) the scanned surface at the fitted nose tip stands out of the scanned surface around it: the
-    90th percentile height of the points within `tip_radius_mm` of the nose axis above (1) the plane through the
+    90th percentile height of the points within `tip_radius_mm` of the nose axis (the 5 nearest within twice that when
+    fewer are left: a nose in profile, whose outline pixels spike removal took) above (1) the plane through the
     points of the `ring_mm` annulus around it (least squares, normal towards the fitted face's front) and (2), where
     that ring is whole (points left, right, above and below), the dome through it: that plane plus κ r², r the
     distance from the axis. A nose stands out of the plane of its cheeks and brow; a wall, however the frame is
@@ -390,6 +471,9 @@ def nose_heights(points: np.ndarray, fit: ModelFit, config: DetectConfig = Detec
     p = p[np.linalg.norm(p, axis=1) <= _heights_reach(config)]
     r = np.linalg.norm(p[:, :2], axis=1)
     tip = p[r <= config.tip_radius_mm]
+    if len(tip) < 3:  # a nose in profile whose rim pixels are gone: the points nearest its axis, within twice that
+        near = np.flatnonzero(r <= 2 * config.tip_radius_mm)
+        tip = p[near[np.argsort(r[near])[:5]]]
     ring = p[(r >= config.ring_mm[0]) & (r <= config.ring_mm[1])]
     sides = [(ring[:, 0] < -10.0).sum(), (ring[:, 0] > 10.0).sum(), (ring[:, 1] > 10.0).sum(), (ring[:, 1] < -10.0).sum()]
     if len(tip) == 0 or sum(n >= 5 for n in sides[:3]) < 2:
