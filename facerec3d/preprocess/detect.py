@@ -75,6 +75,7 @@ class DetectConfig:
     profile_step_mm: float = 20.0  # a nose in profile stands out of the head's outline this far above and below ...
     min_profile_peak_mm: float = 4.0  # ... by at least this much (its bridge and upper lip lie ~10 mm behind it)
     profile_peaks: int = 2  # peaks per side of each head, beside its outermost point
+    max_head_width_mm: float = 350.0  # a head is at most this wide at nose height (median; shoulders ~400–500)
     head_weight: float = 0.5  # placement penalty per 50 mm outside crown_mm
     finalists: int = 6  # the best distinct coarse placements get a full fit (6, not 4: with the profile candidates
     #                     the frontal nose of a bowed head was left out of 4 on rap3df-2019) ...
@@ -341,7 +342,8 @@ def silhouette_candidates(sub: FaceScan, config: DetectConfig = DetectConfig()) 
     `profile_peaks` points standing out most, by at least `min_profile_peak_mm`, beyond the outline
     `profile_step_mm` above and below them (a nose stands ~10 mm beyond its bridge and its upper lip; the back of a
     head and a shoulder rising from the slice below form none, but ears and curls do, which the placement tests
-    reject). Indices into `sub`. On rap3df-2019 these found the nose of ~30 heads turned 60–90° that the earlier candidates (the leftmost and
+    reject). A surface wider than `max_head_width_mm` at nose height (median over the slices) is no head and gives
+    none. Indices into `sub`. On rap3df-2019 these found the nose of ~30 heads turned 60–90° that the earlier candidates (the leftmost and
     rightmost points of the whole scan at nose height: a shoulder, flying pixels) missed."""
     spacing = 2.0
     step = int(round(config.profile_step_mm / spacing))
@@ -349,16 +351,19 @@ def silhouette_candidates(sub: FaceScan, config: DetectConfig = DetectConfig()) 
     found: list[int] = []
     for head in head_regions(sub, config):
         slices = np.floor((sub.points[head[0], 1] - sub.points[head, 1]) / spacing).astype(np.int64)
+        outlines = {}
         for side in (-1.0, 1.0):
             out = side * sub.points[head, 0]  # how far out on this side
             outline = np.full(slices.max() + 1, -np.inf)
             np.maximum.at(outline, slices, out)
+            outlines[side] = out, outline
+        band = np.arange(lo, min(hi, slices.max() + 1))
+        band = band[np.isfinite(outlines[1.0][1][band])]
+        if len(band) == 0 or np.median(outlines[1.0][1][band] + outlines[-1.0][1][band]) > config.max_head_width_mm:
+            continue  # no head: shoulders, a torso the head is not joined to, a wall
+        for side, (out, outline) in outlines.items():
             at = np.full(len(outline), -1)
             at[slices[out == outline[slices]]] = head[out == outline[slices]]
-            band = np.arange(lo, min(hi, len(outline)))
-            band = band[np.isfinite(outline[band])]
-            if len(band) == 0:
-                continue
             found.append(int(at[band[np.argmax(outline[band])]]))
             inner = np.arange(max(lo, step), min(hi, len(outline) - step))
             above, below = outline[inner - step], outline[inner + step]
