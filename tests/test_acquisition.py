@@ -111,8 +111,9 @@ def side_of_nose(points: np.ndarray, nose: np.ndarray, yaw: float) -> np.ndarray
 def test_a_head_in_profile_is_found_beside_a_raised_hand():
     """Heads turned 70° with a hand raised beside the nose. The profile candidates come from the head's own outline
     (`silhouette_candidates`), so the hand, nearer the side of the frame than the nose, does not take the nose's
-    place (taken over the whole frame, the outermost point at nose height found the nose on 1 of these 8 faces).
-    Truth: the generator's nose tip."""
+    place (taken over the whole frame, the outermost point at nose height found the nose on 1 of these 8 faces);
+    and the true placement passes although the outline's pixels are gone (the nearest tip points in `nose_heights`,
+    the outline's lines of sight not judged in `seen_share`). Truth: the generator's nose tip."""
     found = []
     for subject in range(8):
         yaw = 70.0 if subject % 2 else -70.0
@@ -130,7 +131,7 @@ def test_a_head_in_profile_is_found_beside_a_raised_hand():
             continue
         M = np.asarray(face.meta.extra["to_frontal"])
         found.append(np.linalg.norm(M[:, :3].T @ (face.landmarks["nose_tip"] - M[:, 3]) - nose) < 10.0)
-    assert sum(found) >= 6, found
+    assert sum(found) >= 7, found  # 8 of 8 here; 6 when the outline's lines of sight are judged (seen_share)
 
 
 def test_sampling_is_measured_from_the_scan():
