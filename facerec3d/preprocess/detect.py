@@ -29,6 +29,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from facerec3d.errors import FailureToAcquire, short_of
 from facerec3d.geometry.transforms import rotation_from_euler
@@ -75,7 +77,7 @@ class DetectConfig:
     join_mm: float = 15.0  # ... whose neighbouring pixels lie this near in 3D
     profile_step_mm: float = 20.0  # a nose in profile stands out of the head's outline this far above and below ...
     min_profile_peak_mm: float = 4.0  # ... by at least this much (its bridge and upper lip lie ~10 mm behind it)
-    profile_peaks: int = 2  # peaks per side of each head, beside its outermost point
+    profile_peaks: int = 2  # peaks per side of each head, beside its outermost point (1: 2 frames right, 5 wrong)
     max_head_width_mm: float = 350.0  # a head is at most this wide at nose height (median; shoulders ~400–500)
     head_weight: float = 0.5  # placement penalty per 50 mm outside crown_mm
     finalists: int = 6  # the best distinct coarse placements get a full fit (6, not 4: with the profile candidates
@@ -316,9 +318,6 @@ def head_regions(sub: FaceScan, config: DetectConfig = DetectConfig()) -> list[n
 def _surfaces(sub: FaceScan, join_mm: float, keep: np.ndarray | None = None) -> np.ndarray:
     """Connected surfaces of a grid scan: label of each point (pixels 8-connected when their points lie within
     `join_mm`; points not in `keep` each alone)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     index = sub.index_image()
     if keep is not None:
         index = np.where((index >= 0) & keep[np.maximum(index, 0)], index, -1)
@@ -338,15 +337,16 @@ def _surfaces(sub: FaceScan, join_mm: float, keep: np.ndarray | None = None) -> 
 
 def silhouette_candidates(sub: FaceScan, config: DetectConfig = DetectConfig()) -> list[int]:
     """Nose tips of heads in profile, which no window-based protrusion sees: on each head (`head_regions`), the
-    outline seen from the left and from the right (each 2 mm slice of height's outermost point) between
+    outline seen from the left and from the right (the outermost point of each `sample_mm` slice of height) between
     `crown_mm[0] + 30` and `crown_mm[1] - 30` mm below the top of the head; its outermost point, and its peaks, the
     `profile_peaks` points standing out most, by at least `min_profile_peak_mm`, beyond the outline
     `profile_step_mm` above and below them (a nose stands ~10 mm beyond its bridge and its upper lip; the back of a
     head and a shoulder rising from the slice below form none, but ears and curls do, which the placement tests
     reject). A surface wider than `max_head_width_mm` at nose height (median over the slices) is no head and gives
-    none. Indices into `sub`. On rap3df-2019 these found the nose of ~30 heads turned 60–90° that the earlier candidates (the leftmost and
-    rightmost points of the whole scan at nose height: a shoulder, flying pixels) missed."""
-    spacing = 2.0
+    none. Indices into `sub`. On rap3df-2019 these found the nose of ~30 heads turned 60–90° that the earlier
+    candidates (the leftmost and rightmost points of the whole scan at nose height: a shoulder, flying pixels)
+    missed."""
+    spacing = config.sample_mm
     step = int(round(config.profile_step_mm / spacing))
     lo, hi = int((config.crown_mm[0] + 30.0) / spacing), int((config.crown_mm[1] - 30.0) / spacing)
     found: list[int] = []
@@ -367,9 +367,10 @@ def silhouette_candidates(sub: FaceScan, config: DetectConfig = DetectConfig()) 
             at[slices[out == outline[slices]]] = head[out == outline[slices]]
             found.append(int(at[band[np.argmax(outline[band])]]))
             inner = np.arange(max(lo, step), min(hi, len(outline) - step))
-            above, below = outline[inner - step], outline[inner + step]
-            peak = np.where(np.isfinite(above) & np.isfinite(below) & np.isfinite(outline[inner]),
-                            outline[inner] - np.maximum(above, below), -np.inf)
+            above, below, here = outline[inner - step], outline[inner + step], outline[inner]
+            known = np.isfinite(above) & np.isfinite(below) & np.isfinite(here)
+            peak = np.full(len(inner), -np.inf)
+            peak[known] = here[known] - np.maximum(above[known], below[known])
             peaks: list[int] = []
             for k in np.argsort(-peak):
                 if peak[k] < config.min_profile_peak_mm or len(peaks) == config.profile_peaks:
