@@ -143,6 +143,25 @@ def test_bad_model_files_give_one_clear_error(tmp_path):
         EmbeddingMatcher(EmbeddingConfig(model=str(wrong))).prepare(model_face(0))
 
 
+def test_a_saved_training_set_is_reused_only_with_todays_preprocessing(tmp_path):
+    """Training faces made by other preprocessing settings (another version's) are made again, never reused."""
+    from facerec3d.training.data import DataRecipe, TrainingSet, cached_training_set
+
+    recipe = DataRecipe(identities=2, scans=2, sensors=("frgc",), identity_profiles=("model",), max_yaw=5.0,
+                        max_pitch=3.0, max_roll=2.0, expression_share=0.0)
+    inputs = InputRecipe()
+    made = cached_training_set(tmp_path / "set.npz", recipe, inputs, progress=False)
+    assert made.info["preprocess"] == PreprocessConfig().digest() and len(made.labels) == 4
+    marked = TrainingSet(np.full_like(made.windows, 7.0), made.labels, made.sensors, dict(made.info))
+    marked.save(tmp_path / "set.npz")
+    assert np.all(cached_training_set(tmp_path / "set.npz", recipe, inputs, progress=False).windows == 7.0)
+    TrainingSet(marked.windows, marked.labels, marked.sensors, {**marked.info, "preprocess": "0123456789abcdef"}
+                ).save(tmp_path / "set.npz")
+    again = cached_training_set(tmp_path / "set.npz", recipe, inputs, progress=False)
+    assert again.info["preprocess"] == PreprocessConfig().digest()
+    assert np.allclose(again.windows, made.windows, equal_nan=True)
+
+
 def test_a_tiny_model_trained_here_separates_a_few_identities(tmp_path):
     """Needs the [train] extra (pip install -e '.[train]'); CI without torch skips only this test."""
     pytest.importorskip("torch")

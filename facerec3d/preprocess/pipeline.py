@@ -10,7 +10,9 @@
 3. spikes are removed (§8.5.2);
 4. quantised or noisy depth is smoothed in the camera frame (bilateral, scaled to the
    measured depth step and noise; skipped on fine laser scans) (§8.5.4);
-5. the face is detected: nose tip, fiducials and frontal pose (§8.5.1, §8.5.5);
+5. the face is detected: nose tip, fiducials and frontal pose (§8.5.1, §8.5.5); then, where coarse depth steps
+   dominate the noise, the smoothed depth around it is brought back within what each pixel measured
+   (`dequantise`: smoothing flattens the nose by ~5 mm on 8 mm steps);
 6. the face is cropped as a sphere around the nose tip (§8.5.1);
 7. holes inside it are filled (§8.5.3);
 8. it is turned into the frontal frame (nose tip at the origin, looking along +z);
@@ -45,7 +47,8 @@ from typing import Any
 import numpy as np
 
 from facerec3d.config import from_dict, read_settings
-from facerec3d.preprocess.denoise import DenoiseConfig, SmoothConfig, denoise, smooth_range_image
+from facerec3d.preprocess.denoise import (DenoiseConfig, DequantiseConfig, SmoothConfig, denoise, dequantise,
+                                         smooth_range_image)
 from facerec3d.preprocess.detect import DetectConfig, crop_sphere, detect_face
 from facerec3d.preprocess.holes import HoleConfig, fill_holes
 from facerec3d.preprocess.orient import OrientConfig, orient
@@ -70,6 +73,7 @@ class PreprocessConfig:
     orient: OrientConfig = field(default_factory=OrientConfig)
     spikes: SpikeConfig = field(default_factory=SpikeConfig)
     smooth: SmoothConfig = field(default_factory=SmoothConfig)
+    dequantise: DequantiseConfig = field(default_factory=DequantiseConfig)
     detect: DetectConfig = field(default_factory=DetectConfig)
     holes: HoleConfig = field(default_factory=HoleConfig)
     resample: ResampleConfig = field(default_factory=ResampleConfig)
@@ -119,8 +123,11 @@ class Preprocessor:
         scan = self._timed("gridify", gridify, scan, cfg.gridify_mm)
         sampling = self._timed("measure", measure_sampling, scan)
         scan = self._timed("spikes", remove_spikes, scan, cfg.spikes, sampling)
+        measured = scan
         scan = self._timed("smooth", smooth_range_image, scan, *cfg.smooth.sigmas(sampling))
         found = self._timed("detect", detect_face, scan, cfg.detect)
+        scan = self._timed("dequantise", dequantise, scan, measured, sampling.depth_step_mm, found.nose_tip,
+                           cfg.crop_radius_mm, cfg.dequantise)
         face = self._timed("crop", crop_sphere, scan, found.nose_tip, cfg.crop_radius_mm)
         at_face = Sampling(face.resolution(), sampling.depth_step_mm, sampling.noise_mm)
         face = self._timed("holes", fill_holes, face, cfg.holes)

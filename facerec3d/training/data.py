@@ -149,8 +149,16 @@ def synthetic_training_set(recipe: DataRecipe = DataRecipe(), inputs: InputRecip
             sensors.append(sensor)
     if not windows:
         raise FaceRec3DError("no training scan could be preprocessed")
-    info = {"recipe": _jsonable(recipe), "input": asdict(inputs), "scans": len(windows), "failures": failures}
+    info = {"recipe": _jsonable(recipe), "input": asdict(inputs), "preprocess": _preprocess_digest(),
+            "scans": len(windows), "failures": failures}
     return TrainingSet(np.stack(windows), np.asarray(labels, np.int64), np.asarray(sensors), info)
+
+
+def _preprocess_digest() -> str:
+    """The digest of the preprocessing the training faces are made with (`_identity_scans`: the defaults)."""
+    from facerec3d.preprocess.pipeline import PreprocessConfig
+
+    return PreprocessConfig().digest()
 
 
 def _jsonable(recipe: DataRecipe) -> dict[str, Any]:
@@ -159,16 +167,19 @@ def _jsonable(recipe: DataRecipe) -> dict[str, Any]:
 
 def cached_training_set(path: str | Path, recipe: DataRecipe, inputs: InputRecipe, workers: Workers | None = None,
                         progress: bool = True) -> TrainingSet:
-    """The training set saved at `path` when it was made with the same recipes, else a new one saved there. A saved
-    set of the same recipe with fewer identities is extended (only the new identities are made)."""
+    """The training set saved at `path` when it was made with the same recipes and preprocessing, else a new one
+    saved there. A saved set of the same recipe with fewer identities is extended (only the new identities are
+    made). A set made by other preprocessing settings (another version's) is made again: its faces are not what
+    preprocessing gives the network now."""
     path = Path(path)
     have: TrainingSet | None = None
     if path.is_file():
         data = TrainingSet.load(path)
         saved = data.info.get("recipe", {})
-        if data.info.get("input") == asdict(inputs) and saved == _jsonable(recipe):
+        same = data.info.get("input") == asdict(inputs) and data.info.get("preprocess") == _preprocess_digest()
+        if same and saved == _jsonable(recipe):
             return data
-        if data.info.get("input") == asdict(inputs) and saved.get("identities", 0) < recipe.identities and \
+        if same and saved.get("identities", 0) < recipe.identities and \
                 {**saved, "identities": recipe.identities} == _jsonable(recipe):
             have = data
     first = have.info["recipe"]["identities"] if have is not None else 0
