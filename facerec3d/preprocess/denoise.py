@@ -184,11 +184,10 @@ def dequantise(scan: FaceScan, raw: FaceScan, step_mm: float, center: np.ndarray
         z = np.clip(z, lo, hi)
         z = np.where(ok, _masked_gaussian(z, ok, config.sigma_px), z)
     z = np.clip(z, lo, hi)
-    r, c = scan.grid[:, 0] - lo_rc[0], scan.grid[:, 1] - lo_rc[1]
-    moved = near & (r >= 0) & (c >= 0) & (r < z.shape[0]) & (c < z.shape[1])
-    moved[moved] &= ok[r[moved], c[moved]]
+    r, c = scan.grid[near, 0] - lo_rc[0], scan.grid[near, 1] - lo_rc[1]  # inside the window by its making
+    moved = near.copy()
+    moved[near] = ok[r, c] & (np.abs(scan.points[near, 2]) > 1e-9)  # (a camera's points all lie off its plane)
+    r, c = scan.grid[moved, 0] - lo_rc[0], scan.grid[moved, 1] - lo_rc[1]
     points = scan.points.copy()
-    old_z = points[moved, 2]
-    new_z = z[r[moved], c[moved]]
-    points[moved] *= np.where(np.abs(old_z) > 1e-9, new_z / np.where(np.abs(old_z) > 1e-9, old_z, 1.0), 1.0)[:, None]
+    points[moved] *= (z[r, c] / points[moved, 2])[:, None]  # along the ray through the camera at the origin
     return scan.replace(points=points, normals=None)
