@@ -8,7 +8,7 @@ call, measured in the same run.
 What it does, exactly:
 * Gallery: `--faces` distinct synthetic identities made directly in preprocessed form
   (`facerec3d.datasets.frontal`, ~18k points with the 95 mm crop each), enrolled with the ICP matcher (templates made on 2
-  processes) and stored in a gallery store; cached under `--cache` (default: the temp folder) by size, so a
+  processes) and stored in a gallery store; cached under `--cache` (default: the temp folder) by size and preprocessing settings, so a
   rerun skips it (~0.2 core-s per face to make).
 * Probes: 32 probe scans of enrolled identities (moved ≤ 3° / 3 mm, 0.3 mm depth noise) as .npz files
   (~150 KB). Two kinds of upload:
@@ -260,7 +260,8 @@ def main() -> None:
     cache.mkdir(parents=True, exist_ok=True)
     print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} at start", flush=True)
 
-    gallery = cache / f"gallery-{args.faces}.sqlite"
+    # keyed by size and preprocessing settings: a gallery bound to other settings would refuse today's faces
+    gallery = cache / f"gallery-{args.faces}-{PreprocessConfig().digest()}.sqlite"
     if not gallery.is_file():
         print(f"making the gallery of {args.faces} faces (cached in {gallery})", flush=True)
         build_gallery(gallery, args.faces, args.jobs)
