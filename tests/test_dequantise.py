@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 
 from facerec3d.datasets.synthetic import FaceScanner, ScanSpec, sensor_profile
+from facerec3d.errors import SettingsError
 from facerec3d.preprocess.denoise import (DequantiseConfig, SmoothConfig, dequantise, quantisation_intervals,
                                           smooth_range_image)
+from facerec3d.preprocess.pipeline import PreprocessConfig
 from facerec3d.preprocess.sampling import measure_sampling
 from facerec3d.preprocess.spikes import SpikeConfig, remove_spikes
 
@@ -80,7 +82,11 @@ def test_quantisation_intervals_follow_uneven_levels():
     assert np.allclose(hi, [1018.0, 1022.0, 1028.0, 1036.0, 1044.0])
 
 
-def test_settings_are_checked():
+def test_settings_are_checked_and_a_settings_file_can_turn_it_off(tmp_path):
     with pytest.raises(ValueError, match="dequantise"):
-        DequantiseConfig(iterations=-1)
-    assert DequantiseConfig(iterations=0).iterations == 0
+        DequantiseConfig(rounds=-1)
+    (tmp_path / "off.toml").write_text("[dequantise]\nrounds = 0\n")
+    assert PreprocessConfig.load(tmp_path / "off.toml").dequantise.rounds == 0
+    (tmp_path / "bad.toml").write_text("[dequantise]\nrounds = -2\n")
+    with pytest.raises(SettingsError, match="bad.toml: dequantise.rounds"):
+        PreprocessConfig.load(tmp_path / "bad.toml")

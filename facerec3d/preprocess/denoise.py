@@ -123,18 +123,18 @@ class DequantiseConfig:
     nose: on synthetic Kinect v2 frames stored with 8-bit depth the bilateral filter puts the nose tip 5.6 mm behind
     the true surface. Here the smoothed depth is made consistent with what was measured again, by alternating
     projections (POCS; cf. the constrained smoothing of quantised images, Youla & Webb, IEEE TMI 1982): each pixel's
-    depth is clipped to the interval that rounds to its measured step, then smoothed by a narrow Gaussian, `iterations`
+    depth is clipped to the interval that rounds to its measured step, then smoothed by a narrow Gaussian, `rounds`
     times. It is applied only where the steps dominate the noise (the raw depth's deviation from its smoothed self is at
     most `max_noise_ratio` × step/√12, the spread of pure rounding): on rap3df-2019 and synthetic 8-bit frames it is
     1.1–1.25, on a RealSense's disparity-quantised depth, whose noise exceeds its steps, 2–2.4."""
 
-    iterations: int = 20  # alternating clip / smooth rounds (0: off); 20 and 100 gave the same surface
+    rounds: int = 20  # alternating clip / smooth rounds (0: off); 20 and 100 gave the same surface
     sigma_px: float = 0.5  # σ of the smoothing between clips (pixels); 0.7 left 0.1 mm more error
     max_noise_ratio: float = 1.5  # dequantise only when the raw depth's residual is at most this × step/√12
 
     def __post_init__(self) -> None:
-        if self.iterations < 0 or not self.sigma_px > 0 or not self.max_noise_ratio > 0:
-            raise ValueError("dequantise: iterations must be ≥ 0, sigma_px and max_noise_ratio > 0")
+        if self.rounds < 0 or not self.sigma_px > 0 or not self.max_noise_ratio > 0:
+            raise ValueError("dequantise: rounds must be ≥ 0, sigma_px and max_noise_ratio > 0")
 
 
 def _masked_gaussian(z: np.ndarray, valid: np.ndarray, sigma: float) -> np.ndarray:
@@ -160,8 +160,8 @@ def dequantise(scan: FaceScan, raw: FaceScan, step_mm: float, center: np.ndarray
     within the quantisation intervals of `raw` (the same grid before smoothing) by alternating projections
     (`DequantiseConfig`). Points move along their line of sight from the camera at the origin (a depth camera's
     frame), so they stay on their pixel's ray. Unchanged when the depth is not quantised (`step_mm` 0), the
-    noise exceeds the steps, or `iterations` is 0."""
-    if config.iterations == 0 or step_mm <= 0 or scan.n_points == 0 or scan.grid is None:
+    noise exceeds the steps, or `rounds` is 0."""
+    if config.rounds == 0 or step_mm <= 0 or scan.n_points == 0 or scan.grid is None:
         return scan
     near = np.linalg.norm(scan.points - np.asarray(center), axis=1) <= radius_mm
     if near.sum() < 10:
@@ -180,7 +180,7 @@ def dequantise(scan: FaceScan, raw: FaceScan, step_mm: float, center: np.ndarray
         return scan  # noise, not rounding, dominates: the measured level says little more than the smoothing
     lo, hi = quantisation_intervals(zr, ok, step_mm)
     z = np.where(ok, zs, 0.0)
-    for _ in range(config.iterations):
+    for _ in range(config.rounds):
         z = np.clip(z, lo, hi)
         z = np.where(ok, _masked_gaussian(z, ok, config.sigma_px), z)
     z = np.clip(z, lo, hi)
