@@ -260,15 +260,15 @@ def main() -> None:
     cache.mkdir(parents=True, exist_ok=True)
     print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} at start", flush=True)
 
+    config = PreprocessConfig()  # the gallery's settings (build_gallery binds the store to them)
     # keyed by size and preprocessing settings: a gallery bound to other settings would refuse today's faces
-    gallery = cache / f"gallery-{args.faces}-{PreprocessConfig().digest()}.sqlite"
+    gallery = cache / f"gallery-{args.faces}-{config.digest()}.sqlite"
     if not gallery.is_file():
         print(f"making the gallery of {args.faces} faces (cached in {gallery})", flush=True)
         build_gallery(gallery, args.faces, args.jobs)
     probes = {"raw": make_probes(cache, args.faces)}
     results: dict = {"faces": args.faces, "jobs": args.jobs, "cores": os.cpu_count(), "service": {}, "cli": {},
                      "load_average_start": os.getloadavg()[0]}
-    config = PreprocessConfig()  # the gallery's settings (build_gallery binds the store to them)
     if "preprocessed" in kinds:
         probes["preprocessed"], edge = preprocess_at_edge(probes["raw"], cache, config)
         results["edge"] = edge
