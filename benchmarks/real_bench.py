@@ -2,7 +2,7 @@
 
     python benchmarks/real_bench.py [--data ../shared/data/rap3df-2019] [--methods icp,...] [--jobs 2]
                                     [--out runs/real] [--anchors o3d-raw,o3d-fair] [--cache DIR] [--options JSON]
-                                    [--preprocess-config FILE] [--train DIR]
+                                    [--preprocess-config FILE] [--train DIR] [--scores LABEL=FILE,...]
 
 Data: the rap3df-2019 folder (80 people, 521 Kinect v2 depth frames, 149 x 119 16-bit PNGs in mm,
 `intrinsics.json`, `manifest.csv` with `path,subject,pose,role`; see its README.md). It comes from the
@@ -65,6 +65,11 @@ has no JIT, so nothing is compiled); facerec3d, its own `timings` from metrics.j
 time of `evaluate`. The first facerec3d method run includes Numba's JIT
 compilation unless Numba's on-disk cache is already warm (reported), and every method's
 preprocessing runs on cold (no) cache.
+
+`--scores LABEL=FILE,...` adds systems from score files without running anything: a fusion of earlier runs'
+members, e.g. `facerec3d fuse OUT/icp/scores.txt OUT/region-icp/scores.txt OUT/embedding/scores.txt --rule
+weighted-sum --weights 2,1,1 --out w211.txt`, then `--methods '' --anchors '' --scores w211=w211.txt` (the `fusion`
+method's own scores are exactly the `fuse` of its members' with its settings).
 
 Writes OUT/real_bench.json (everything), OUT/real_bench.md (the tables) and, per method, facerec3d's
 run folder OUT/<method>/.
@@ -336,26 +341,16 @@ def training_set(root: Path) -> Path:
     return root
 
 
-def run_method(method: str, data: Path, gallery_rows: list, probe_rows: list, out: Path, jobs: int,
-               cache: Path | None = None, options: dict | None = None, label: str | None = None,
-               train: Path | None = None, config: Any = None) -> dict:
-    """One facerec3d method through its Python API (preprocessing `config`, default the defaults); the score
-    matrix rebuilt from scores.txt.
+def score_file_system(path: Path, data: Path, gallery_rows: list, probe_rows: list) -> dict:
+    """A system from a score file (an evaluation's scores.txt, or `facerec3d fuse`'s): its score matrix over the
+    manifest's probes and gallery, failures where it has no score.
 
-    Rows of scores.txt are paired with the manifest's probes by (real_id, probe_label), label = the
-    frame's path within the dataset (as the manifest gives it), columns by claimed_id = gallery subject. A probe
-    with no row failed to acquire, a gallery subject never claimed failed to enrol."""
-    from facerec3d.evaluation.run import evaluate
+    Rows are paired with the manifest's probes by (real_id, probe_label), label = the frame's path within the
+    dataset (as the manifest gives it), columns by claimed_id = gallery subject. A probe with no row failed to
+    acquire, a gallery subject never claimed failed to enrol."""
     from facerec3d.evaluation.scorefile import read_score_rows
-    from facerec3d.preprocess import PreprocessConfig
 
-    warm = numba_cache_warm()
-    t0 = time.perf_counter()
-    label = label or method
-    metrics = evaluate(data / "manifest.csv", method=method, out=out / label, jobs=jobs, progress=False,
-                       cache=cache, options=options, train=train, config=config or PreprocessConfig())
-    wall_s = time.perf_counter() - t0
-    rows = read_score_rows(out / label / "scores.txt")
+    rows = read_score_rows(path)
     probe_at = {(r["subject"], Path(r["path"]).relative_to(data).as_posix()): i for i, r in enumerate(probe_rows)}
     gallery_at = {r["subject"]: j for j, r in enumerate(gallery_rows)}
     if len(gallery_at) != len(gallery_rows):
@@ -364,14 +359,31 @@ def run_method(method: str, data: Path, gallery_rows: list, probe_rows: list, ou
     for claimed, real, label, score in zip(*rows):
         i, j = probe_at.get((real, label)), gallery_at.get(claimed)
         if i is None or j is None:
-            raise ValueError(f"scores.txt row {claimed} {real} {label} matches no manifest probe/gallery frame")
+            raise ValueError(f"{path}: row {claimed} {real} {label} matches no manifest probe/gallery frame")
         S[i, j] = score
-    failed_probe = np.isnan(S).all(axis=1)
-    failed_gallery = np.isnan(S).all(axis=0)
-    if metrics.get("failures_to_enrol", 0) != int(failed_gallery.sum()):
+    return {"S": np.where(np.isnan(S), -np.inf, S), "failed_probe": np.isnan(S).all(axis=1),
+            "failed_gallery": np.isnan(S).all(axis=0)}
+
+
+def run_method(method: str, data: Path, gallery_rows: list, probe_rows: list, out: Path, jobs: int,
+               cache: Path | None = None, options: dict | None = None, label: str | None = None,
+               train: Path | None = None, config: Any = None) -> dict:
+    """One facerec3d method through its Python API (preprocessing `config`, default the defaults); the score
+    matrix rebuilt from scores.txt (`score_file_system`)."""
+    from facerec3d.evaluation.run import evaluate
+    from facerec3d.preprocess import PreprocessConfig
+
+    warm = numba_cache_warm()
+    t0 = time.perf_counter()
+    label = label or method
+    metrics = evaluate(data / "manifest.csv", method=method, out=out / label, jobs=jobs, progress=False,
+                       cache=cache, options=options, train=train, config=config or PreprocessConfig())
+    wall_s = time.perf_counter() - t0
+    system = score_file_system(out / label / "scores.txt", data, gallery_rows, probe_rows)
+    if metrics.get("failures_to_enrol", 0) != int(system["failed_gallery"].sum()):
         print(f"  note: {method}: metrics.json says {metrics.get('failures_to_enrol')} failures to enrol, "
-              f"scores.txt shows {int(failed_gallery.sum())} gallery subjects never scored")
-    return {"S": np.where(np.isnan(S), -np.inf, S), "failed_probe": failed_probe, "failed_gallery": failed_gallery,
+              f"scores.txt shows {int(system['failed_gallery'].sum())} gallery subjects never scored")
+    return {**system,
             "timings": {**metrics.get("timings", {}), "evaluate_wall_s": wall_s, "jobs": jobs,
                         "numba_cache_warm_before": warm,
                         "preprocess_cache": f"{cache} (may be warm)" if cache else "none (cold)"},
@@ -512,6 +524,8 @@ def timing_lines(systems: dict) -> list[str]:
                          f"({t['wall_ms_x_jobs_per_comparison']:.2f} ms x jobs per comparison); "
                          f"{t['cpu_ms_per_comparison']:.2f} CPU-ms per comparison (process time, warm: no JIT); "
                          f"load average {t['load_avg_before']:.1f} before, {t['load_avg_after']:.1f} after")
+        elif "score_file" in t:
+            lines.append(f"{name}: from the score file {t['score_file']} (not timed)")
         else:
             jit = "no JIT (Numba cache warm)" if t.get("numba_cache_warm_before") else "INCLUDES Numba JIT compilation"
             lines.append(f"{name}: evaluate {t['evaluate_wall_s']:.1f} s wall ({jit}; preprocessing cache: "
@@ -557,6 +571,9 @@ def main(argv=None) -> int:
     ap.add_argument("--preprocess-config", type=Path, default=None,
                     help="preprocessing settings (TOML/JSON, any subset, as `facerec3d preprocess --config`); e.g. "
                          "crop_radius_mm = 80 with [resample] half_width_mm = 80 to measure another crop")
+    ap.add_argument("--scores", default="",
+                    help="LABEL=FILE,...: systems read from score files (bob4, e.g. `facerec3d fuse` of earlier runs' "
+                         "scores.txt), reported beside the methods, not run")
     ap.add_argument("--train", type=Path, default=Path("bench-out/data/train-kinect-v2"),
                     help="training set of the learnt methods (pca, lda); written there (synthetic kinect-v2) if missing")
     args = ap.parse_args(argv)
@@ -605,6 +622,13 @@ def main(argv=None) -> int:
             reason = " ".join(f"{type(e).__name__}: {e}".split())
             failures[m] = reason
             print(f"  FAILED {m}: {reason[:300]}", flush=True)
+    for item in filter(None, (x.strip() for x in args.scores.split(","))):
+        label, _, path = item.partition("=")
+        if not path or label in systems:
+            ap.error(f"--scores {item!r}: give LABEL=FILE, with a label not used by another system")
+        systems[label] = {**score_file_system(Path(path), args.data, gallery_rows, probe_rows),
+                          "timings": {"score_file": path}}
+        methods.append(label)
     methods = [m for m in methods if m in systems]
 
     groups = subject_groups([r["subject"] for r in manifest])

@@ -1010,6 +1010,39 @@ def metrics(scores, fmt, higher_is_better, out, overwrite, bootstrap, seed):
 
 
 @main.command()
+@click.argument("scores", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False))
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False),
+              help="Score file to write (bob4: claimed_id real_id probe_label score).")
+@click.option("--format", "fmt", type=click.Choice(["bob4", "bob5", "csv"]), default="bob4", show_default=True,
+              help="Format of the SCORES files (as `metrics` reads them); all similarities.")
+@click.option("--normalisation", default="z-score", show_default=True,
+              help="Per-probe normalisation over the gallery: none, min-max, z-score, tanh, tanh-hampel.")
+@click.option("--rule", default="sum", show_default=True, help="sum, product, weighted-sum, borda or consensus.")
+@click.option("--weights", default="", help="Comma-separated, one per file, for --rule weighted-sum (e.g. 2,1,1).")
+@click.option("--top", default=0, show_default=True, help="borda / consensus: points only for each file's TOP best.")
+@click.option("--overwrite", is_flag=True, help="Replace OUT if it exists; without it an existing file is refused.")
+@friendly
+def fuse(scores, out, fmt, normalisation, rule, weights, top, overwrite):
+    """Fuse several systems' score files (SCORES, two or more) into one, as the `fusion` method fuses its members
+    (chapter §8.10): each probe's scores normalised over the gallery, then combined; evaluate it with `metrics`."""
+    from facerec3d.errors import InputError
+    from facerec3d.evaluation.scorefile import fuse_score_files, write_scores
+
+    try:
+        w = tuple(float(x) for x in weights.split(",")) if weights.strip() else ()
+    except ValueError:
+        raise InputError(f"--weights {weights!r}: not comma-separated numbers") from None
+    if Path(out).exists() and not overwrite:
+        raise InputError(f"{out}: exists; give --overwrite to replace it")
+    m, left_out = fuse_score_files(list(scores), fmt, rule, normalisation, w, top)
+    partial = Path(out).with_name(Path(out).name + ".partial")
+    n = write_scores(partial, m.S, m.probe_ids, m.probe_labels, m.gallery_ids)
+    partial.replace(out)
+    click.echo(f"wrote {out}: {n} comparisons of {len(m.probe_labels)} probes, {rule} of {normalisation} scores of "
+               f"{len(scores)} files" + (f"; {left_out} comparisons missing from some file left out" if left_out else ""))
+
+
+@main.command()
 @click.option("--subjects", default=30, show_default=True)
 @click.option("--scans", default=4, show_default=True, help="Scans per subject: neutral gallery, neutral, expression, ±25° yaw.")
 @click.option("--methods", default="icp,region-icp,lda", show_default=True,

@@ -322,3 +322,65 @@ def test_eer_and_vr_agree_with_pyeer_on_a_score_file(tmp_path):
     ours, stats = check_against_pyeer(tmp_path / "s.txt")
     assert 0 < ours < 0.5
     assert verification_rate(*read_scores(tmp_path / "s.txt"), 0.001) == pytest.approx(1 - stats.fmr1000)
+
+
+def test_fused_score_files_are_the_fusion_of_their_rows(tmp_path):
+    """`facerec3d fuse` (evaluation.scorefile.fuse_score_files): each probe's rows of each file normalised over the
+    gallery and combined, the `fusion` method's computation; files written in different orders pair by label."""
+    from click.testing import CliRunner
+
+    from facerec3d.cli import main
+    from facerec3d.evaluation.scorefile import read_score_matrix
+    from facerec3d.matching.base import rank
+    from facerec3d.matching.normalisation import fuse
+
+    rng = np.random.default_rng(5)
+    gallery = [f"g{i}" for i in range(8)]
+    subjects = [gallery[i % 8] for i in range(16)]
+    labels = [f"p{i}" for i in range(16)]
+    truth = np.array([[s == g for g in gallery] for s in subjects], float)
+    A = truth * 1.0 + rng.normal(0, 0.6, truth.shape)  # two noisy systems, each wrong on some probes
+    B = 3.0 * truth + rng.normal(0, 2.5, truth.shape) - 40.0  # another scale entirely
+    write_scores(tmp_path / "a.txt", A, subjects, labels, gallery)
+    order = rng.permutation(16)  # the second file lists its probes and gallery in another order
+    cols = rng.permutation(8)
+    write_scores(tmp_path / "b.txt", B[order][:, cols], [subjects[i] for i in order], [labels[i] for i in order],
+                 [gallery[j] for j in cols])
+    run = lambda *args: CliRunner().invoke(main, ["fuse", str(tmp_path / "a.txt"), str(tmp_path / "b.txt"), *args])
+
+    result = run("--out", str(tmp_path / "f.txt"))
+    assert result.exit_code == 0, result.output
+    f = read_score_matrix(tmp_path / "f.txt")
+    assert list(f.probe_labels) == labels and list(f.gallery_ids) == gallery
+    expected = np.stack([fuse(np.stack([A[i], B[i]]), "sum", "z-score")[0] for i in range(16)])
+    np.testing.assert_allclose(f.S, expected, rtol=1e-12)
+    hits = lambda S: np.mean(S.argmax(axis=1) == np.arange(16) % 8)
+    assert hits(f.S) >= max(hits(A), hits(B))  # on this draw the fusion is right where either is
+
+    run("--out", str(tmp_path / "w.txt"), "--rule", "weighted-sum", "--weights", "3,1")
+    expected = np.stack([fuse(np.stack([A[i], B[i]]), "weighted-sum", "z-score", (3.0, 1.0))[0] for i in range(16)])
+    np.testing.assert_allclose(read_score_matrix(tmp_path / "w.txt").S, expected, rtol=1e-12)
+
+    # consensus: votes, ties broken by the Borda count, in one score that ranks as the matchers do
+    run("--out", str(tmp_path / "c.txt"), "--rule", "consensus")
+    c = read_score_matrix(tmp_path / "c.txt").S
+    for i in range(16):
+        votes, borda = fuse(np.stack([A[i], B[i]]), "consensus", "z-score")
+        assert list(np.argsort(-c[i], kind="stable")) == list(rank(votes, borda))
+
+    # a comparison that one file lacks is left out, and said so; an existing file is not overwritten
+    (tmp_path / "b.txt").write_text("".join(line for line in (tmp_path / "b.txt").read_text().splitlines(True)
+                                            if not line.startswith("g3 ") or " p3 " not in line))
+    result = run("--out", str(tmp_path / "f.txt"), "--overwrite")
+    assert result.exit_code == 0 and "1 comparisons missing from some file left out" in result.output
+    assert np.isnan(read_score_matrix(tmp_path / "f.txt").S[3, 3]) and not np.isnan(read_score_matrix(tmp_path / "f.txt").S[3, 2])
+    result = run("--out", str(tmp_path / "f.txt"))
+    assert result.exit_code == 2 and "exists" in result.output and "Traceback" not in result.output
+
+    # files that disagree on a probe's subject, or settings fuse would refuse: one line, exit 2
+    (tmp_path / "b.txt").write_text("g0 g5 p0 0.5\n")
+    result = run("--out", str(tmp_path / "x.txt"))
+    assert result.exit_code == 2 and "'p0'" in result.output and "b.txt" in result.output
+    result = run("--out", str(tmp_path / "x.txt"), "--rule", "weighted-sum", "--weights", "1")
+    assert result.exit_code == 2 and "one weight per source" in result.output
+    assert not (tmp_path / "x.txt").exists()

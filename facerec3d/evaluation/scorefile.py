@@ -128,6 +128,7 @@ class ScoreMatrix(NamedTuple):
     probe_ids: np.ndarray  # str: each probe's subject
     probe_labels: np.ndarray  # str
     gallery_ids: np.ndarray  # str: each template's subject
+    template_labels: np.ndarray | None = None  # str: each template's label (model_label; bob4: k for the k-th)
 
 
 def _csv_columns(path: str | Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray, np.ndarray]:
@@ -202,4 +203,49 @@ def read_score_matrix(path: str | Path, fmt: str = "bob4", higher_is_better: boo
                          f"{str(model[twice])!r}")
     S = np.full((labels.size, len(templates)), np.nan)
     S[row, col] = score if higher_is_better else -score
-    return ScoreMatrix(S, subjects, labels, templates[:, 0])
+    return ScoreMatrix(S, subjects, labels, templates[:, 0], templates[:, 1])
+
+
+def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str = "sum",
+                     normalisation: str = "z-score", weights: Sequence[float] = (),
+                     top: int = 0) -> tuple[ScoreMatrix, int]:
+    """Score-level fusion of several systems' score files (chapter §8.10; `matching.normalisation.fuse`, what the
+    `fusion` method computes from its members' scores): each probe's scores of each file normalised over the
+    gallery templates it was compared with, then combined by `rule`. Probes are matched by label, templates by
+    (subject, label). Returns the fused matrix and the number of comparisons left out because some file lacks them
+    (a comparison is fused only where every file has it; a score of −inf, a match not found, counts as that
+    probe's worst). Raises InputError naming the file when the files disagree on a probe's subject."""
+    from facerec3d.matching.normalisation import check_fusion, fuse
+
+    if len(paths) < 2:
+        raise InputError("fusion needs at least two score files")
+    try:
+        check_fusion(rule, normalisation, weights, len(paths))
+    except ValueError as e:
+        raise InputError(str(e)) from None
+    mats = [read_score_matrix(p, fmt) for p in paths]
+    first = mats[0]
+    probes = {str(label): i for i, label in enumerate(first.probe_labels)}
+    templates = {(str(g), str(t)): j for j, (g, t) in enumerate(zip(first.gallery_ids, first.template_labels))}
+    stack = np.full((len(mats), len(probes), len(templates)), np.nan)
+    stack[0] = first.S
+    for k, (path, m) in enumerate(zip(paths[1:], mats[1:]), 1):
+        rows = np.array([probes.get(str(label), -1) for label in m.probe_labels])
+        cols = np.array([templates.get((str(g), str(t)), -1) for g, t in zip(m.gallery_ids, m.template_labels)])
+        clash = [(label, subject) for i, label, subject in zip(rows, m.probe_labels, m.probe_ids)
+                 if i >= 0 and first.probe_ids[i] != subject]
+        if clash:
+            label, subject = clash[0]
+            raise InputError(f"{path}: probe {str(label)!r} is subject {str(subject)!r} here and "
+                             f"{str(first.probe_ids[probes[str(label)]])!r} in {paths[0]}")
+        keep_r, keep_c = rows >= 0, cols >= 0
+        stack[k][np.ix_(rows[keep_r], cols[keep_c])] = m.S[np.ix_(keep_r, keep_c)]
+    made = ~np.isnan(stack).any(axis=0)
+    fused = np.full(made.shape, np.nan)
+    for i in np.flatnonzero(made.any(axis=1)):
+        cols = np.flatnonzero(made[i])
+        score, tiebreak = fuse(stack[:, i, cols], rule, normalisation, weights, top)
+        # consensus: whole votes, ties broken by the Borda count (below one vote), as the matchers rank
+        fused[i, cols] = score if tiebreak is None else score + tiebreak / (tiebreak.max() + 1.0)
+    left_out = sum(int((~np.isnan(m.S)).sum()) for m in mats) - len(mats) * int(made.sum())
+    return ScoreMatrix(fused, first.probe_ids, first.probe_labels, first.gallery_ids, first.template_labels), left_out
