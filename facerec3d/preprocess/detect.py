@@ -230,9 +230,8 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
                               key=lambda f: f.inlier_fraction))
     # on quantised depth nearly every placement fits the rigid mean face, so those with a nose standing out of
     # the scan where the mean face puts it go first (the same test that decides below)
-    around = _Neighbours(scan, config)
-    coarse.sort(key=lambda f: (not is_nose(nose_heights(around.points(f, _heights_reach(config)), f, config), config),
-                               -f.inlier_fraction + head_penalty(f, sub, crown, config)))
+    around = Neighbours(scan, config)
+    coarse.sort(key=lambda f: (not shows_nose(around, f, config), -f.inlier_fraction + head_penalty(f, sub, crown, config)))
     if not coarse or coarse[0].inlier_fraction < config.min_coarse_inliers:
         why = "no face-like surface found" if not coarse else (
             f"no face fits: at best {coarse[0].inlier_fraction:.0%} of the points near a nose candidate fit a face")
@@ -392,7 +391,7 @@ def head_penalty(fit: ModelFit, sub: FaceScan, crown: np.ndarray, config: Detect
     return config.head_weight * max(0.0, lo - height, height - hi) / 50.0
 
 
-class _Neighbours:
+class Neighbours:
     """The scan's points by their (x, y), built once for all placements of a scan: the lines of sight of
     `seen_share`, and the points near a placement's nose for the tests that look at those only."""
 
@@ -415,6 +414,12 @@ class _Neighbours:
         return pts[idx[d <= (radius_mm if exact else radius_mm + 1.0)]]
 
 
+def shows_nose(around: Neighbours, fit: ModelFit, config: DetectConfig = DetectConfig()) -> bool:
+    """Whether the scan shows a nose where a placement puts one (`nose_heights` of the scan's points near it,
+    `is_nose`): the test that orders the coarse placements and, with the others, decides the winner."""
+    return is_nose(nose_heights(around.points(fit, _heights_reach(config)), fit, config), config)
+
+
 def _heights_reach(config: DetectConfig) -> float:
     """How far from the nose tip the points that `nose_heights` looks at lie (mm)."""
     return config.ring_mm[1] + 20.0
@@ -426,7 +431,7 @@ def _disc_reach(config: DetectConfig) -> float:
 
 
 def seen_share(scan: FaceScan, fit: ModelFit, config: DetectConfig = DetectConfig(),
-               sight: _Neighbours | None = None) -> tuple[float, float]:
+               sight: Neighbours | None = None) -> tuple[float, float]:
     """Free-space check of a placement: of the fitted model's surface within `seen_radius_mm` of its nose that faces
     the camera (scan frame, looking along −Z), the share the scan agrees with, i.e. has a point within
     `seen_margin_mm` in depth along the line of sight, or nearer (occluding it). A face fitted to an ear or a
@@ -445,7 +450,7 @@ def seen_share(scan: FaceScan, fit: ModelFit, config: DetectConfig = DetectConfi
     v = v[n[:, 2] > 0.3]
     if len(v) == 0:
         return 0.0, 0.0
-    sight = sight or _Neighbours(scan, config)
+    sight = sight or Neighbours(scan, config)
     d, idx = sight.tree.query(v[:, :2], k=8, distance_upper_bound=sight.reach)
     found = np.isfinite(d)
     z = np.where(found, scan.points[np.minimum(idx, scan.n_points - 1), 2], -np.inf)
