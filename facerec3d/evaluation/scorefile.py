@@ -232,12 +232,12 @@ def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str =
     for k, (path, m) in enumerate(zip(paths[1:], mats[1:]), 1):
         rows = np.array([probes.get(str(label), -1) for label in m.probe_labels])
         cols = np.array([templates.get((str(g), str(t)), -1) for g, t in zip(m.gallery_ids, m.template_labels)])
-        clash = [(label, subject) for i, label, subject in zip(rows, m.probe_labels, m.probe_ids)
+        clash = [(i, label, subject) for i, label, subject in zip(rows, m.probe_labels, m.probe_ids)
                  if i >= 0 and first.probe_ids[i] != subject]
         if clash:
-            label, subject = clash[0]
+            i, label, subject = clash[0]
             raise InputError(f"{path}: probe {str(label)!r} is subject {str(subject)!r} here and "
-                             f"{str(first.probe_ids[probes[str(label)]])!r} in {paths[0]}")
+                             f"{str(first.probe_ids[i])!r} in {paths[0]}")
         keep_r, keep_c = rows >= 0, cols >= 0
         stack[k][np.ix_(rows[keep_r], cols[keep_c])] = m.S[np.ix_(keep_r, keep_c)]
     made = ~np.isnan(stack).any(axis=0)
