@@ -7,11 +7,11 @@ import pytest
 from click.testing import CliRunner
 
 from facerec3d.cli import main
-from facerec3d.datasets.synthetic import quick_scan
+from facerec3d.datasets.synthetic import OCCLUDERS, identity_profile, quick_scan
 from facerec3d.gallery.store import GalleryStore
 from facerec3d.matching.afm import AFMConfig, AFMMatcher, haar_pyramid
 from facerec3d.matching.base import Template
-from facerec3d.matching.morphable import GeometryImageConfig, MorphIDMatcher, face_fit, geometry_image
+from facerec3d.matching.morphable import GeometryImageConfig, MorphIDMatcher, RefitConfig, face_fit, geometry_image
 from facerec3d.matching.registry import load_matcher, make_matcher
 from facerec3d.preprocess.pipeline import MODEL_FIT_KEY, PreprocessConfig, Preprocessor
 from tests.conftest import cli_dataset, model_face, service_identify
@@ -96,6 +96,29 @@ def test_preprocessing_keeps_the_fit_and_its_geometry_image_finds_the_true_fiduc
             d_ref = np.linalg.norm(ref.fitted - model_face(0).landmarks[name], axis=2)
             assert np.abs(np.subtract(cell, np.unravel_index(np.argmin(d_ref), d_ref.shape))).max() <= 1, name
             assert d.min() < 3.0
+
+
+def test_the_robust_refit_finds_occluded_faces_outside_the_model():
+    """Faces outside the model's span, each seen clean (gallery) and behind a hand, a fringe or glasses (probes,
+    another session): with the robust refit (the default) every occluded face is nearer its own clean face than
+    anyone else's, and nearer it than with the preprocessing fit alone, whose modes the occluder pulls."""
+    pre, outside, small = Preprocessor(), identity_profile("outside-model"), dict(rows=320, cols=400, focal_px=1000.0)
+    people = range(6)
+    clean = [pre(quick_scan(s, seed=10 + s, identity=outside, **small).scan) for s in people]
+    hidden = [[pre(quick_scan(s, seed=20 + s, identity=outside, occluder=o, **small).scan) for s in people]
+              for o in OCCLUDERS]
+    own = {}
+    for name, matcher in (("refit", AFMMatcher()), ("plain", AFMMatcher(AFMConfig(refit=RefitConfig(enabled=False))))):
+        gallery = [matcher.enroll(f) for f in clean]
+        D = np.array([[matcher.distances(matcher.prepare(f), gallery) for f in row] for row in hidden])  # (o, p, g)
+        own[name] = np.einsum("opp->op", D)
+        if name == "refit":
+            assert (D.argmin(axis=2) == np.arange(len(people))).all(), D.argmin(axis=2)
+    assert own["refit"].mean() < 0.7 * own["plain"].mean(), (own["refit"].round(1), own["plain"].round(1))
+    morph = MorphIDMatcher()  # its identity coefficients come from the same refit
+    gallery = [morph.enroll(f) for f in clean]
+    found = [[int(np.argmax(morph.scores(f, gallery)[0])) for f in row] for row in hidden]
+    assert (np.array(found) == np.arange(len(people))).all(), found
 
 
 def distances(matcher, faces, probe_expression):

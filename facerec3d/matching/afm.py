@@ -39,7 +39,7 @@ import numpy as np
 from facerec3d.errors import InputError
 from facerec3d.matching.base import Matcher, Template
 from facerec3d.matching.expression import ResidueConfig, ResidueModel
-from facerec3d.matching.morphable import GeometryImageConfig, face_fit, geometry_image, uv_basis
+from facerec3d.matching.morphable import GeometryImageConfig, RefitConfig, face_fit, geometry_image, refit, uv_basis
 from facerec3d.scan import FaceScan
 
 EXPRESSION_HANDLING = ("none", "blendshapes", "residue", "blendshapes+residue")
@@ -70,6 +70,7 @@ class AFMConfig:
     """Geometry-image wavelet matching settings (§8.10.1)."""
 
     image: GeometryImageConfig = field(default_factory=GeometryImageConfig)  # UV grid and sampling
+    refit: RefitConfig = field(default_factory=RefitConfig)  # the robust refit of the fit before sampling
     levels: int = 3  # Haar levels: 64 → 32 → 16 → 8 (the 8 × 8 approximation covers 16 mm cells)
     drop_finest: int = 1  # finest detail levels left out (2 mm-scale noise): 3 × 1,024 coefficients remain
     expression: str = "blendshapes"  # one of EXPRESSION_HANDLING (module docstring)
@@ -116,14 +117,16 @@ class AFMMatcher(Matcher[Template]):
         """(coefficients (3·k,) float32 mm, valid (k,) bool) of a preprocessed face's geometry image, channel by
         channel (x, y, z), each relative to the model's mean face so that the values are small."""
         cfg = self.config
-        fit = face_fit(scan)
+        fit = refit(scan, face_fit(scan), cfg.refit)
         g = geometry_image(scan, fit, cfg.image)
         n = cfg.image.size
         basis = uv_basis(cfg.image)
-        points = g.points - basis.mean.reshape(n, n, 3)
+        # in the fit's frame (x -> R x + t; the identity for the fit preprocessing kept), so that the pose the refit
+        # corrects does not reach the coefficients
+        points = g.points @ fit.R.T + fit.t - basis.mean.reshape(n, n, 3)
         valid = g.valid
         if cfg.expression.startswith("blendshapes"):
-            points = points - g.expression
+            points = points - g.expression @ fit.R.T
         if cfg.mask_mobility_mm is not None:
             valid = valid & (basis.mobility.reshape(n, n) <= cfg.mask_mobility_mm)
         bands = haar_pyramid(points.transpose(2, 0, 1), valid, cfg.levels)[cfg.drop_finest:]

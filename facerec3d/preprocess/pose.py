@@ -379,7 +379,28 @@ class ModelFit:
     vertex_normals: np.ndarray  # (n, 3) its unit normals
 
 
-def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: ModelFitConfig = ModelFitConfig()) -> ModelFit:
+def _shaped(fb: _FitBasis, c: np.ndarray) -> np.ndarray:
+    """(n, 3) the fitted part's vertices with mode coefficients c."""
+    return fb.mean + (fb.basis.reshape(-1, len(c)) @ c).reshape(-1, 3)
+
+
+def _shaped_grid(fb: _FitBasis, V: np.ndarray) -> _Grid:
+    """The nearest-vertex search structure of shaped vertices V (the mean face's distance field, loosened by how
+    far V moved from the mean)."""
+    shape = V - fb.mean
+    return _Grid.build(V, fb.grid.field, float(np.sqrt(np.max(np.einsum("ij,ij->i", shape, shape)))))
+
+
+def model_nose_tip(coefficients: np.ndarray, config: ModelFitConfig = ModelFitConfig()) -> np.ndarray:
+    """(3,) the nose tip of the model with these mode coefficients, in `fit_face_model`'s frame (the mean face's
+    nose tip at the origin)."""
+    fb = _fit_basis(config)
+    c = np.pad(np.asarray(coefficients, dtype=np.float64)[: fb.basis.shape[2]], (0, max(0, fb.basis.shape[2] - len(coefficients))))
+    return _shaped(fb, c)[fb.landmarks["nose_tip"]]
+
+
+def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: ModelFitConfig = ModelFitConfig(),
+                   start: np.ndarray | None = None, robust_mm: float | None = None) -> ModelFit:
     """Fit pose, identity and expression of the morphable model to scan points (mm), from x -> R x + t.
 
     Each iteration pairs every scan point with its closest model vertex
@@ -388,15 +409,24 @@ def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: Mod
     linearised point-to-plane least-squares problem (Chen & Medioni) for a
     small rigid motion and the mode coefficients together, with a Gaussian
     prior of weight λ on the coefficients. Pairing from the scan side means
-    self-occluded parts of the face do not pull the fit.
+    self-occluded parts of the face do not pull the fit. `start`: the mode
+    coefficients to start from (None: the mean face). `robust_mm`: None
+    for least squares, else each pair is weighted 1 / (1 + (r / robust_mm)²)
+    (the Cauchy M-estimator by iteratively reweighted least squares; Zhang,
+    "Parameter estimation techniques", IVC 1997), so points the model
+    cannot explain, such as an occluder lying near the face, pull it less.
     """
     fb = _fit_basis(config)
     points = np.ascontiguousarray(points[:: max(1, len(points) // config.max_points)], dtype=np.float64)
     K = fb.basis.shape[2]
-    c = np.zeros(K)
+    c = np.zeros(K) if start is None else np.array(start, dtype=np.float64)[:K]
+    c = np.pad(c, (0, K - len(c)))
     R, t = np.asarray(R, float), np.asarray(t, float)
     n = config.iterations
     V, normals, grid = fb.mean, fb.normals, fb.grid
+    if c.any():
+        V = _shaped(fb, c)
+        normals, grid = _normals(V, fb.triangles), _shaped_grid(fb, V)
     prev = np.full(len(points), -1, dtype=np.int64)  # each point's last partner, where the search starts
     reg = np.zeros(6 + K)
     reg[6:] = config.regularisation
@@ -406,15 +436,16 @@ def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: Mod
         J, r = _linearise(points, R, t, cutoff, prev, V, normals, fb.boundary, fb.basis, *grid.args())
         if len(r) < 50:
             break
+        if robust_mm is not None:  # IRLS: rows scaled by the square root of the Cauchy weight
+            w = np.sqrt(1.0 / (1.0 + (r / robust_mm) ** 2))
+            J, r = J * w[:, None], r * w
         x = np.linalg.solve(J.T @ J + prior, -(J.T @ r) - reg * np.concatenate([np.zeros(6), c]))
         dR = _rotvec_matrix(x[:3])
         R, t = dR @ R, dR @ t + x[3:6]
         if K:
             c = c + x[6:]
-            shape = (fb.basis.reshape(-1, K) @ c).reshape(-1, 3)
-            V = fb.mean + shape
-            normals = _normals(V, fb.triangles)
-            grid = _Grid.build(V, fb.grid.field, float(np.sqrt(np.max(np.einsum("ij,ij->i", shape, shape)))))
+            V = _shaped(fb, c)
+            normals, grid = _normals(V, fb.triangles), _shaped_grid(fb, V)
     nose = V[fb.landmarks["nose_tip"]]
     landmarks = {name: R.T @ (V[k] - t) for name, k in fb.landmarks.items()}
     p = points @ R.T + (t - nose)
