@@ -395,8 +395,9 @@ def model_nose_tip(coefficients: np.ndarray, config: ModelFitConfig = ModelFitCo
     """(3,) the nose tip of the model with these mode coefficients, in `fit_face_model`'s frame (the mean face's
     nose tip at the origin)."""
     fb = _fit_basis(config)
-    c = np.pad(np.asarray(coefficients, dtype=np.float64)[: fb.basis.shape[2]], (0, max(0, fb.basis.shape[2] - len(coefficients))))
-    return _shaped(fb, c)[fb.landmarks["nose_tip"]]
+    K = fb.basis.shape[2]
+    c = np.asarray(coefficients, dtype=np.float64)[:K]
+    return _shaped(fb, np.pad(c, (0, K - len(c))))[fb.landmarks["nose_tip"]]
 
 
 def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: ModelFitConfig = ModelFitConfig(),
