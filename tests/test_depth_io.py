@@ -10,7 +10,7 @@ from facerec3d import ScanFormatError
 from facerec3d.datasets.catalog import open_dataset
 from facerec3d.datasets.protocols import split
 from facerec3d.io import Intrinsics, load_scan, save_scan, write_depth_image
-from facerec3d.io.depth import frame_to_scan, scan_to_frame
+from facerec3d.io.depth import frame_to_scan, read_depth_image, scan_to_frame
 
 KINECT = Intrinsics(fx=365.5, fy=366.0, cx=59.0, cy=74.0, depth_unit_mm=0.25)
 
@@ -108,6 +108,21 @@ def test_bad_depth_images_give_one_line_naming_the_file(tmp_path, make, reason):
     with pytest.raises(ScanFormatError, match=reason) as e:
         load_scan(target)
     assert str(target) in str(e.value) and "\n" not in str(e.value)
+
+
+def test_an_npz_archive_named_npy_beside_intrinsics_is_one_line_not_a_crash(tmp_path):
+    """Found by the service's upload fuzzing: an .npz archive (a zip) named .npy, with intrinsics beside it, made
+    the depth-frame check call .ndim on NumPy's archive object (AttributeError, a 500 from the service)."""
+    KINECT.save(tmp_path / "intrinsics.json")
+    target = tmp_path / "f.npy"
+    np.savez(tmp_path / "f.npz", depth=frame())
+    (tmp_path / "f.npz").rename(target)
+    with pytest.raises(ScanFormatError) as e:
+        load_scan(target)
+    assert str(target) in str(e.value) and "\n" not in str(e.value)
+    with pytest.raises(ScanFormatError, match="archive") as e:
+        read_depth_image(target, KINECT)
+    assert str(target) in str(e.value)
 
 
 def test_huge_depth_header_is_refused_before_decoding(tmp_path):

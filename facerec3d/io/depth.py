@@ -158,6 +158,9 @@ def _read_pixels(path: str | Path) -> np.ndarray:
     if scan_suffix(path) == ".npy":
         with library_errors(path, "NumPy depth image"):
             a = np.load(path, mmap_mode="r", allow_pickle=False)
+        if not isinstance(a, np.ndarray):  # a .npz archive under a .npy name
+            a.close()
+            raise ScanFormatError(path, "an .npz archive, not one .npy array: a depth image must be one 2-D array")
     else:
         from PIL import Image
 
