@@ -98,8 +98,7 @@ def _is_depth_npy(path: str | Path, intrinsics) -> bool:
     except Exception:  # let the reader say what is wrong
         return False
     if not isinstance(a, np.ndarray):  # an .npz archive named .npy: not a depth frame, the reader says what it is
-        if hasattr(a, "close"):
-            a.close()
+        a.close()
         return False
     return a.ndim == 2 and a.shape[1] != 3
 

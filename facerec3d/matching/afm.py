@@ -117,7 +117,7 @@ class AFMMatcher(Matcher[Template]):
         """(coefficients (3·k,) float32 mm, valid (k,) bool) of a preprocessed face's geometry image, channel by
         channel (x, y, z), each relative to the model's mean face so that the values are small."""
         cfg = self.config
-        fit = refit(scan, face_fit(scan), cfg.refit)
+        fit = refit(scan, cfg.refit)
         g = geometry_image(scan, fit, cfg.image)
         n = cfg.image.size
         basis = uv_basis(cfg.image)

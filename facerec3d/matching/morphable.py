@@ -89,9 +89,10 @@ class RefitConfig:
             raise ValueError("need 0 < end_distance_mm ≤ start_distance_mm and robust_mm > 0")
 
 
-def refit(face: FaceScan, fit: FaceFit, config: RefitConfig = RefitConfig()) -> FaceFit:
-    """A face's model fit refined robustly from `fit` (`RefitConfig`); `fit` itself when the refit is off or finds
-    too few points."""
+def refit(face: FaceScan, config: RefitConfig = RefitConfig(), fit: FaceFit | None = None) -> FaceFit:
+    """A face's model fit refined robustly (`RefitConfig`) from `fit` (default: `face_fit(face)`, the fit
+    preprocessing kept); that fit itself when the refit is off or finds too few points."""
+    fit = face_fit(face) if fit is None else fit
     if not config.enabled:
         return fit
     k = len(fit.identity)
@@ -270,7 +271,7 @@ class MorphIDMatcher(Matcher[np.ndarray]):
         self.config = MorphIDConfig() if config is None else config
 
     def features(self, scan: FaceScan) -> np.ndarray:
-        a = refit(scan, face_fit(scan), self.config.refit).identity[: self.config.modes]
+        a = refit(scan, self.config.refit).identity[: self.config.modes]
         return np.pad(a, (0, self.config.modes - len(a)))
 
     def enroll(self, scan: FaceScan) -> Template:
