@@ -2,6 +2,9 @@
 coefficients, expression removal (blendshapes, residue PCA), identity coefficients, and the methods through
 enrolment, identification and the gallery store."""
 
+import json
+import sqlite3
+
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -188,6 +191,27 @@ def test_model_methods_through_the_store_and_a_saved_model(tmp_path, faces):
             for s in SUBJECTS:
                 best = again.identify(faces[(s, "smile")], templates, k=2)
                 assert templates[best[0][0]].subject == f"s{s}" and best[0][1] > best[1][1]
+
+
+@pytest.mark.parametrize("method", ["afm", "morph-id"])
+def test_a_gallery_stored_before_the_refit_keeps_working_without_it(tmp_path, method):
+    """Options stored before `refit` existed load with the refit off (the templates were made without it), while a
+    new gallery's and a saved model's options keep it as stored."""
+    path = tmp_path / "old.sqlite"
+    with GalleryStore(path, create=True) as store:
+        store.bind(PreprocessConfig(), make_matcher(method))
+    assert GalleryStore(path).matcher().config.refit.enabled
+    db = sqlite3.connect(path)
+    with db:
+        options = json.loads(db.execute("SELECT value FROM meta WHERE key = 'options'").fetchone()[0])
+        del options["refit"]
+        db.execute("UPDATE meta SET value = ? WHERE key = 'options'", (json.dumps(options),))
+    db.close()
+    with GalleryStore(path) as store:
+        old = store.matcher()
+    assert not old.config.refit.enabled and old.config.refit == RefitConfig(enabled=False)
+    assert {k: v for k, v in old.options().items() if k != "refit"} == options
+    assert make_matcher(method, options).config.refit.enabled  # options a user gives take today's default
 
 
 def test_cli_enroll_identify_verify_with_afm_and_morph_id(tmp_path):

@@ -55,7 +55,7 @@ import numpy as np
 from facerec3d.errors import FaceRec3DError
 from facerec3d.matching.base import Matcher, Template
 from facerec3d.matching.checks import check_template
-from facerec3d.matching.registry import make_matcher
+from facerec3d.matching.registry import stored_matcher
 from facerec3d.preprocess.pipeline import PreprocessConfig
 
 FORMAT = "facerec3d-gallery-2"
@@ -421,7 +421,7 @@ class GalleryStore:
     @_sqlite_errors
     def matcher(self) -> Matcher:
         """The matcher the gallery was enrolled with (method, options and what it learnt)."""
-        matcher = make_matcher(self._require("method"), json.loads(self._require("options")))
+        matcher = stored_matcher(self._require("method"), json.loads(self._require("options")))
         arrays = {}
         for name, *rest in self._db.execute("SELECT name, dtype, shape, data, checksum FROM model_arrays"):
             try:

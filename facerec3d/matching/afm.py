@@ -98,6 +98,7 @@ class AFMMatcher(Matcher[Template]):
 
     name = "afm"
     config_class = AFMConfig
+    added_options = {"refit": {"enabled": False}}  # templates stored before the robust refit (December 2026)
 
     def __init__(self, config: AFMConfig | None = None) -> None:
         self.config = AFMConfig() if config is None else config

@@ -123,6 +123,17 @@ class Matcher(ABC, Generic[P]):
     #: True when a template's score depends on the other templates scored with it (normalisation over the
     #: gallery): verification must then score the probe against the whole gallery, not the claim alone.
     cohort_scores: bool = False
+    #: Config fields added after templates of this method were first stored, with the value that works as the method
+    #: did before each: options stored without such a field (an older gallery or model file) take that value, not
+    #: today's default, so old templates keep meeting probes prepared their way (`from_stored`).
+    added_options: dict[str, Any] = {}
+
+    @classmethod
+    def from_stored(cls, options: Mapping[str, Any] | None) -> "Matcher":
+        """The matcher of options stored with templates (a gallery, a model file): fields missing from them that
+        were added later (`added_options`) keep the behaviour of their time."""
+        options = dict(options or {})
+        return cls.from_options({**{k: v for k, v in cls.added_options.items() if k not in options}, **options})
 
     @classmethod
     def from_options(cls, options: Mapping[str, Any] | None = None) -> "Matcher":

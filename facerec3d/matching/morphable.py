@@ -266,6 +266,7 @@ class MorphIDMatcher(Matcher[np.ndarray]):
 
     name = "morph-id"
     config_class = MorphIDConfig
+    added_options = {"refit": {"enabled": False}}  # templates stored before the robust refit (December 2026)
 
     def __init__(self, config: MorphIDConfig | None = None) -> None:
         self.config = MorphIDConfig() if config is None else config

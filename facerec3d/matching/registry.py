@@ -42,6 +42,11 @@ def make_matcher(method: str, options: Mapping[str, Any] | None = None) -> Match
     return matcher_class(method).from_options(options)
 
 
+def stored_matcher(method: str, options: Mapping[str, Any] | None) -> Matcher:
+    """The matcher of a method and options stored with templates (`Matcher.from_stored`)."""
+    return matcher_class(method).from_stored(options)
+
+
 def load_matcher(path: str | PathLike) -> Matcher:
     """A matcher saved by `Matcher.save`: its method, settings and what it learnt."""
     try:
@@ -49,7 +54,7 @@ def load_matcher(path: str | PathLike) -> Matcher:
         options, state = t.attrs["options"], t.attrs["state"]
     except (OSError, ValueError, KeyError) as e:
         raise FaceRec3DError(f"{path}: not a facerec3d model file ({e})") from None
-    matcher = make_matcher(t.method, options)
+    matcher = stored_matcher(t.method, options)
     matcher.set_state(t.arrays, state)
     return matcher
 
