@@ -86,6 +86,27 @@ while True:  # enrol until killed
 """
 
 
+def test_a_gallery_stored_before_a_setting_existed_accepts_todays_defaults(tmp_path):
+    """Preprocessing settings stored without a field added since (here the detector's prominence_weight) read as
+    that field's default: enrolling into or probing the gallery with today's default settings is accepted, while a
+    real difference is still refused and named."""
+    path = tmp_path / "old.sqlite"
+    with GalleryStore(path, create=True) as store:
+        store.bind(PreprocessConfig(), ICPMatcher())
+    db = sqlite3.connect(path)
+    with db:
+        stored = json.loads(db.execute("SELECT value FROM meta WHERE key = 'preprocess'").fetchone()[0])
+        del stored["detect"]["prominence_weight"]
+        db.execute("UPDATE meta SET value = ? WHERE key = 'preprocess'", (json.dumps(stored, sort_keys=True),))
+    db.close()
+    with GalleryStore(path) as store:
+        assert store.preprocess_config() == PreprocessConfig()
+        store.check_preprocess(PreprocessConfig())
+        store.bind(PreprocessConfig(), ICPMatcher())
+        with pytest.raises(GalleryError, match=r"preprocessed differently.*detect\.prominence_weight"):
+            store.check_preprocess(PreprocessConfig.from_dict({"detect": {"prominence_weight": 0.0}}))
+
+
 def test_kill_during_enrolment_leaves_earlier_entries_intact(tmp_path):
     path = tmp_path / "g.sqlite"
     code = WRITER.format(tests=os.path.dirname(__file__), path=str(path))

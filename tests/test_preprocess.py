@@ -9,7 +9,8 @@ from scipy import ndimage
 
 from facerec3d import FailureToAcquire
 from facerec3d.cli import main
-from facerec3d.datasets.synthetic import EXPRESSIONS, FaceScanner, ScanSpec, quick_scan
+from facerec3d.datasets.synthetic import (
+    EXPRESSIONS, DatasetConfig, FaceScanner, ScanSpec, identity_profile, plan_dataset, quick_scan)
 from facerec3d.geometry.transforms import rotation_angle
 from facerec3d.io import save_scan
 from facerec3d.preprocess import (
@@ -119,3 +120,21 @@ def test_batch_reports_failures_by_name_and_goes_on(tmp_path):
     assert rows[str(noise)]["status"] not in ("ok", "")
     outcomes = list(preprocess_files([corrupt, good], jobs=2))
     assert [o.face is None for o in outcomes] == [True, False]
+
+
+def test_a_hand_or_glasses_that_fit_the_face_model_do_not_win_over_the_nose():
+    """Scans of faces outside the model's span with a hand on the cheek or glasses on (scans of the synthetic 60 × 5
+    outside-model set) on which the hand or the rim of the glasses fitted the face model as well as the face and won
+    the placement: the nose standing out as noses do (`detect.prominence`) puts every nose within 10 mm of the
+    truth. With `prominence_weight = 0` the six noses land 50–80 mm away, on the hand or the glasses."""
+    cfg = DatasetConfig(subjects=60, scans=5, identity=identity_profile("outside-model"))
+    specs = plan_dataset(cfg)
+    scanner = FaceScanner(cfg.scanner, seed=cfg.seed, identity=cfg.identity)
+    pre = Preprocessor()
+    errors = {}
+    for index in (118, 129, 165, 187, 249, 252):  # 04223d218, 04225d229, 04233d265, 04237d287, 04249d349, 04250d352
+        truth = scanner.scan(specs[index])
+        assert specs[index].occluder in ("hand", "glasses")
+        nose = landmarks_in_input_frame(pre(truth.scan))["nose_tip"]
+        errors[index] = round(float(np.linalg.norm(nose - truth.landmarks["nose_tip"])), 1)
+    assert max(errors.values()) <= 10.0, errors

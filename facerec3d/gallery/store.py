@@ -403,10 +403,9 @@ class GalleryStore:
     @_sqlite_errors
     def check_preprocess(self, preprocess: PreprocessConfig) -> None:
         """Refuse scans preprocessed with settings other than the gallery's."""
-        stored = self._require("preprocess")
-        if preprocess.fingerprint() != stored:
-            a, b = json.loads(stored), preprocess.to_dict()
-            diff = sorted(_differences(a, b))
+        stored = self.preprocess_config()  # as this version reads them: settings added since take their defaults
+        if preprocess.fingerprint() != stored.fingerprint():
+            diff = sorted(_differences(stored.to_dict(), preprocess.to_dict()))
             raise GalleryError(f"{self.path}: the probe is preprocessed differently from the gallery "
                                f"(differs in {', '.join(diff)}); use the gallery's settings")
 

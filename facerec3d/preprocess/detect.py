@@ -83,6 +83,8 @@ class DetectConfig:
     finalists: int = 6  # the best distinct coarse placements get a full fit (6, not 4: with the profile candidates
     #                     the frontal nose of a bowed head was left out of 4 on rap3df-2019) ...
     identity_penalty: float = 0.1  # ... and the best `placement_score` wins: the identity prior regularises, never gates
+    prominence_weight: float = 0.35  # ... with a bonus for a nose standing out as noses do (`prominence`) ...
+    prominence_mm: float = 20.0  # ... up to this height above its plane and its dome
     coarse: ModelFitConfig = field(default_factory=lambda: ModelFitConfig(
         identity_modes=0, expression_modes=False, iterations=15, start_distance_mm=20.0, end_distance_mm=5.0,
         max_points=800))  # rigid fit of the mean face, to verify each candidate
@@ -251,7 +253,7 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
     shaped = [(f, c, nose_heights(around.points(f, _heights_reach(config)), f, config),
                seen_share(scan, f, config, around)) for f, c in zip(fits, finalists)]
     shaped.sort(key=lambda x: -(x[1].inlier_fraction + placement_score(x[0], config) + x[3][0]
-                                - head_penalty(x[0], sub, crown, config)))
+                                + prominence(x[2], config) - head_penalty(x[0], sub, crown, config)))
     passing = [(f, h[0]) for f, _, h, seen in shaped
                if is_nose(h, config) and seen[1] >= config.min_seen and f.inlier_fraction >= config.min_inliers]
     if not passing:
@@ -460,6 +462,14 @@ def seen_share(scan: FaceScan, fit: ModelFit, config: DetectConfig = DetectConfi
         nearest, _ = sight.tree.query(v[~judged, :2], k=1, distance_upper_bound=sight.outline)
         judged[np.flatnonzero(~judged)[~np.isfinite(nearest)]] = True  # nothing near: the camera saw past it
     return float(agree.mean()), float(agree[judged].mean()) if judged.any() else 0.0
+
+
+def prominence(heights: tuple[float, float], config: DetectConfig = DetectConfig()) -> float:
+    """Ranking bonus of a placement whose nose stands out as a nose does: `prominence_weight` × the lesser of its
+    `nose_heights` (the dome's counts only where the ring is whole) over `prominence_mm`, clipped to [0, 1]. A hand on
+    the cheek, the rim of glasses or a tuft of hair stands 5–15 mm out of the surface around it and can fit the face
+    model as well as the face does; a nose stands 15–35 mm out of both its plane and its dome."""
+    return config.prominence_weight * float(np.clip(min(heights) / config.prominence_mm, 0.0, 1.0))
 
 
 def placement_score(fit: ModelFit, config: DetectConfig = DetectConfig()) -> float:
