@@ -371,7 +371,7 @@ def _rotvec_matrix(w):  # pragma: no cover - compiled
 @njit(cache=True)
 def _rigid_step(J, r, R, t):  # pragma: no cover - compiled
     """The pose after one linearised step without modes: x = (JᵀJ)⁻¹(−Jᵀr) (the normal equations, 6 × 6, summed
-    here: for a rigid fit NumPy's call overheads cost more than the sums), then R ← dR R, t ← dR t + x[3:]."""
+    here: for a rigid fit NumPy's call overheads cost more than the sums), then the pose moved by it (`_moved`)."""
     A = np.zeros((6, 6))
     b = np.zeros(6)
     for i in range(r.shape[0]):
@@ -382,9 +382,15 @@ def _rigid_step(J, r, R, t):  # pragma: no cover - compiled
     for a in range(6):
         for c in range(a):
             A[a, c] = A[c, a]
-    x = np.linalg.solve(A, b)
+    return _moved(np.linalg.solve(A, b), R, t)
+
+
+@njit(cache=True)
+def _moved(x, R, t):  # pragma: no cover - compiled
+    """The pose (R, t) after a linearised step x (rotation vector x[:3], translation x[3:6]): R ← dR R,
+    t ← dR t + x[3:6]."""
     dR = _rotvec_matrix(x[:3])
-    return dR @ R, dR @ t + x[3:]
+    return dR @ R, dR @ t + x[3:6]
 
 
 @dataclass(frozen=True)
@@ -467,8 +473,7 @@ def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: Mod
             R, t = _rigid_step(J, r, R, t)
             continue
         x = np.linalg.solve(J.T @ J + prior, -(J.T @ r) - reg * np.concatenate([np.zeros(6), c]))
-        dR = _rotvec_matrix(x[:3])
-        R, t = dR @ R, dR @ t + x[3:6]
+        R, t = _moved(x, R, t)
         c = c + x[6:]
         V = _shaped(fb, c)
         normals, grid = _normals(V, fb.triangles), _shaped_grid(fb, V)
