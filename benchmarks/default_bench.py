@@ -2,6 +2,7 @@
 
     python benchmarks/default_bench.py [--methods icp,region-icp,fusion]
         [--subjects 20] [--scans 4] [--real runs/real/real_bench.json] [--data bench-out/default] [--jobs 2]
+        [--preprocess-config settings.toml]
 
 Synthetic sets (FRGC layout, written once under --data, then reused), each `--subjects` x `--scans` (the first
 scan neutral and frontal, then expressions and ±25° / free poses): one per sensor profile (`frgc`, `kinect-v2`,
@@ -14,7 +15,9 @@ same candidates (their labels must match); its held-out-half rank-1 over all pro
 the real column is left out, and the table says so: a default chosen without real data is a guess.
 
 Two tables: rank-1 over all probes (failures count as misses) and the EER, per set, with the mean and the worst
-over the sets. No rule picks the default for you: the docs (docs/methods.md) say which was chosen and why.
+over the sets. `--preprocess-config` judges a preprocessing setting the same way, as `real_bench.py
+--preprocess-config` does on the real frames (the cache keys each face by its settings, so both share --data).
+No rule picks the default for you: the docs (docs/methods.md) say which was chosen and why.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from pathlib import Path
 from facerec3d.config import read_settings
 from facerec3d.datasets.synthetic import DatasetConfig, identity_profile, sensor_profile, write_dataset
 from facerec3d.evaluation.run import evaluate
+from facerec3d.preprocess.pipeline import PreprocessConfig
 
 SETS = {  # name: (sensor profile, identities)
     "frgc": ("frgc", "model"), "frgc-outside": ("frgc", "outside-model"), "kinect-v2": ("kinect-v2", "model"),
@@ -64,7 +68,12 @@ def main(argv=None) -> int:
     ap.add_argument("--real", type=Path, help="real_bench.json of a real_bench run with the same methods")
     ap.add_argument("--data", type=Path, default=Path("bench-out/default"))
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--preprocess-config", type=Path, default=None,
+                    help="preprocessing settings (TOML/JSON, any subset, as `facerec3d preprocess --config`), e.g. "
+                         "[symmetry] mode = \"mirror\"; the run folders get the file's name")
     args = ap.parse_args(argv)
+    config = PreprocessConfig.load(args.preprocess_config) if args.preprocess_config else PreprocessConfig()
+    runs = "runs" if args.preprocess_config is None else f"runs-{args.preprocess_config.stem}"
     specs = method_specs(args.methods)
     table: dict[str, dict[str, float]] = {label: {} for label, _, _ in specs}
     eers: dict[str, dict[str, float]] = {label: {} for label, _, _ in specs}
@@ -76,8 +85,8 @@ def main(argv=None) -> int:
                                 scanner=sensor_profile(sensor), identity=identity_profile(identities))
             write_dataset(root, cfg, "abs", progress=False)
         for label, method, options in specs:
-            m = evaluate(root, method=method, options=options, out=args.data / "runs" / name / label.replace(":", "-"),
-                         jobs=args.jobs, cache=args.data / "cache", progress=False, bootstrap=0)
+            m = evaluate(root, method=method, options=options, out=args.data / runs / name / label.replace(":", "-"),
+                         jobs=args.jobs, cache=args.data / "cache", config=config, progress=False, bootstrap=0)
             table[label][name], eers[label][name] = m["rank1_all"], m["eer"]
             print(f"{name:18s} {label:28s} rank-1 all {100 * m['rank1_all']:5.1f} %  EER {100 * m['eer']:5.1f} %",
                   flush=True)

@@ -1,7 +1,8 @@
 """Every matching method on the same synthetic protocol, side by side (chapter §8.6–8.10).
 
     python benchmarks/methods_bench.py [--subjects 60] [--scans 5] [--data bench-out/data] [--out bench-out/methods]
-        [--methods icp,pca,...,fusion=examples/fusion-icp-region.toml] [--jobs 2] [--identities model|outside-model]
+        [--methods icp,pca,...,fusion=examples/fusion-icp-region.toml] [--jobs 2]
+        [--identities model|outside-model|outside-model-unoccluded]
 
 Three synthetic datasets (FRGC layout, made once under --data, then reused):
 `testN` (mixed expressions at 0.6–1.0 strength), `strongN` (the same
@@ -10,7 +11,8 @@ subjects with open mouth, smile or surprise at full strength) and `trainN`
 and anything else whose `needs_training` is set). `--identities outside-model`
 makes all three from faces outside the morphable model's span (wider identity
 spread, smooth deformations, occluders: `datasets.synthetic.IDENTITY_PROFILES`),
-named with an `-outside` suffix. Each method is evaluated
+named with an `-outside` suffix; `outside-model-unoccluded` the same faces without
+the occluders (`-unoccluded`). Each method is evaluated
 on the test and the strong set; one `compare` report per set holds every
 method's metrics and timings. The table printed at the end gives rank-1
 (neutral / non-neutral probes), EER and the time of one probe–gallery
@@ -28,7 +30,7 @@ from threadpoolctl import threadpool_limits
 
 from facerec3d.config import read_settings
 from facerec3d.datasets.catalog import open_dataset
-from facerec3d.datasets.synthetic import DatasetConfig, identity_profile, write_dataset
+from facerec3d.datasets.synthetic import IDENTITY_PROFILES, DatasetConfig, identity_profile, write_dataset
 from facerec3d.datasets.protocols import split
 from facerec3d.evaluation.compare import compare_runs
 from facerec3d.evaluation.run import evaluate
@@ -43,7 +45,7 @@ DEFAULT_METHODS = ("icp,pca,lda,curvature,region-icp,region-icp=examples/region-
 def datasets(root: Path, subjects: int, scans: int, identities: str = "model") -> dict[str, Path]:
     """The test, strong-expression and training sets (written when missing) of model or outside-model faces."""
     who = identity_profile(identities)
-    suffix = "" if identities == "model" else "-outside"
+    suffix = {"model": "", "outside-model": "-outside", "outside-model-unoccluded": "-unoccluded"}[identities]
     configs = {
         f"test{subjects}{suffix}": DatasetConfig(subjects=subjects, scans=scans, identity=who),
         f"strong{subjects}{suffix}": DatasetConfig(subjects=subjects, scans=scans, identity=who,
@@ -88,8 +90,9 @@ def main() -> None:
     ap.add_argument("--methods", default=DEFAULT_METHODS, help="Comma-separated; NAME=CONFIG.toml gives settings.")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--cache", default=str(DEFAULT_CACHE))
-    ap.add_argument("--identities", default="model", choices=["model", "outside-model"],
-                    help="Faces in the morphable model's span, or outside it (IDENTITY_PROFILES).")
+    ap.add_argument("--identities", default="model", choices=list(IDENTITY_PROFILES),
+                    help="Faces in the morphable model's span, or outside it, with or without occluders "
+                         "(IDENTITY_PROFILES).")
     args = ap.parse_args()
     sets = datasets(Path(args.data), args.subjects, args.scans, args.identities)
     test, strong, train = sets.values()

@@ -113,9 +113,10 @@ def convert(src, dst):
 @click.option("--sensor", type=click.Choice(["frgc", "kinect-v2", "kinect-v2-8bit", "realsense"]), default="frgc",
               show_default=True, help="Simulated depth sensor: FRGC's Minolta laser scanner, Kinect v2 time of "
               "flight (1 mm, or 4/8 mm depth steps), RealSense D435 active stereo.")
-@click.option("--identities", type=click.Choice(["model", "outside-model"]), default="model", show_default=True,
-              help="Faces from the morphable model, or beyond it: wider identities, a non-linear deformation "
-              "and occluders (hair fringe, glasses, hand).")
+@click.option("--identities", type=click.Choice(["model", "outside-model", "outside-model-unoccluded"]),
+              default="model", show_default=True,
+              help="Faces from the morphable model, or beyond it: wider identities, a non-linear deformation and "
+              "occluders (hair fringe, glasses, hand); outside-model-unoccluded: the same faces without the occluders.")
 @click.option("--rows", type=int, help="Range image rows (default: the sensor's).")
 @click.option("--cols", type=int, help="Range image columns (default: the sensor's; the focal length scales with it).")
 @friendly

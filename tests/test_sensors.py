@@ -204,6 +204,17 @@ def test_outside_model_plan_keeps_poses_and_draws_occluders():
     assert {s.occluder for s in wild} == {None, *OCCLUDERS}
 
 
+def test_the_unoccluded_profile_gives_the_outside_model_faces_with_nothing_in_front():
+    cfg = DatasetConfig(subjects=6, scans=4, seed=1, identity=IDENTITY_PROFILES["outside-model"])
+    bare = replace(cfg, identity=IDENTITY_PROFILES["outside-model-unoccluded"])
+    assert plan_dataset(bare) == [replace(s, occluder=None) for s in plan_dataset(cfg)]
+    face = dict(yaw=10.0, seed=3, scanner=SMALL)
+    wild = quick_scan(4, identity=cfg.identity, **face)
+    plain = quick_scan(4, identity=bare.identity, **face)
+    np.testing.assert_array_equal(plain.scan.points, wild.scan.points)  # the same head
+    assert not np.array_equal(plain.scan.points, quick_scan(4, **face).scan.points)  # outside the model's span
+
+
 def test_cli_synth_writes_kinect_scans_with_occluders_in_the_manifest(tmp_path):
     r = CliRunner().invoke(main, ["synth", str(tmp_path / "d"), "--subjects", "1", "--scans", "3",
                                   "--sensor", "kinect-v2", "--identities", "outside-model"])

@@ -124,6 +124,9 @@ class IdentityConfig:
 IDENTITY_PROFILES: dict[str, IdentityConfig] = {
     "model": IdentityConfig(),
     "outside-model": IdentityConfig(identity_sigma=1.6, deformation_mm=3.0, occluders=(None,) + OCCLUDERS),
+    # the same faces with nothing in front of them: tells what the face's shape costs a method from what the
+    # occluders do (the plan and every face are those of "outside-model", the occluders left out)
+    "outside-model-unoccluded": IdentityConfig(identity_sigma=1.6, deformation_mm=3.0),
 }
 
 
