@@ -84,7 +84,13 @@ class DetectConfig:
     #                     the frontal nose of a bowed head was left out of 4 on rap3df-2019) ...
     identity_penalty: float = 0.1  # ... and the best `placement_score` wins: the identity prior regularises, never gates
     prominence_weight: float = 0.35  # ... with a bonus for a nose standing out as noses do (`prominence`) ...
-    prominence_mm: float = 20.0  # ... up to this height above its plane and its dome
+    prominence_mm: float = 20.0  # ... up to this height above its plane and its dome ...
+    rms_weight: float = 0.0  # ... and, when > 0, less this × how much the full fit's RMS exceeds the best placement's,
+    rms_tolerance: float = 0.1  # ... relative, beyond this share (`rms_excess`: hair and the back of a head leave a
+    #                             rougher residue than a face). Off by default: 2 put 12 rap3df-2019 detections on the
+    #                             face and took none off it, but moved 4 of 300 synthetic outside-model faces with a hand
+    #                             130–170 mm away, whose own fit is rougher than a smooth surface's (docs/methods.md,
+    #                             "A face fits smoother than hair")
     coarse: ModelFitConfig = field(default_factory=lambda: ModelFitConfig(
         identity_modes=0, expression_modes=False, iterations=15, start_distance_mm=20.0, end_distance_mm=5.0,
         max_points=800))  # rigid fit of the mean face, to verify each candidate
@@ -252,8 +258,11 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
     # coarse fit), the full model fitting with a likely identity and the seen share, less the head penalty
     shaped = [(f, c, nose_heights(around.points(f, _heights_reach(config)), f, config),
                seen_share(scan, f, config, around)) for f, c in zip(fits, finalists)]
+    best_rms = min((f.rms_mm for f in fits if np.isfinite(f.rms_mm)), default=0.0)
     shaped.sort(key=lambda x: -(x[1].inlier_fraction + placement_score(x[0], config) + x[3][0]
-                                + prominence(x[2], config) - head_penalty(x[0], sub, crown, config)))
+                                + prominence(x[2], config) - head_penalty(x[0], sub, crown, config)
+                                - (config.rms_weight * rms_excess(x[0].rms_mm, best_rms, config.rms_tolerance)
+                                   if config.rms_weight else 0.0)))
     passing = [(f, h[0]) for f, _, h, seen in shaped
                if is_nose(h, config) and seen[1] >= config.min_seen and f.inlier_fraction >= config.min_inliers]
     if not passing:
@@ -470,6 +479,16 @@ def prominence(heights: tuple[float, float], config: DetectConfig = DetectConfig
     the cheek, the rim of glasses or a tuft of hair stands 5–15 mm out of the surface around it and can fit the face
     model as well as the face does; a nose stands 15–35 mm out of both its plane and its dome."""
     return config.prominence_weight * float(np.clip(min(heights) / config.prominence_mm, 0.0, 1.0))
+
+
+def rms_excess(rms_mm: float, best_mm: float, tolerance: float = 0.0) -> float:
+    """How much a placement's full-fit RMS (mm) exceeds the best placement's of the same scan, as a fraction of it,
+    beyond `tolerance` (0 for the best). Hair, the back of a head or a face model fitted across a face's outline
+    leave a rougher residue than a face does, whatever the sensor's noise. 0 where either is not a positive finite
+    number (a fit without inliers fails on its inliers)."""
+    if not (np.isfinite(rms_mm) and np.isfinite(best_mm) and best_mm > 0):
+        return 0.0
+    return max(0.0, rms_mm / best_mm - 1.0 - tolerance)
 
 
 def placement_score(fit: ModelFit, config: DetectConfig = DetectConfig()) -> float:
