@@ -90,7 +90,8 @@ def from_dict(cls, data: dict[str, Any], source: str | Path | None = None, prefi
         raise SettingsError(source, prefix.rstrip(".") or None,
                             f"unknown {cls.__name__} settings: {', '.join(sorted(map(str, unknown)))}")
     hints = typing.get_type_hints(cls)
-    values = {name: _check(hints[name], value, source, prefix + name) for name, value in data.items()}
+    values = {name: _check(hints[name], value, source, prefix + name, _default(cls, name))
+              for name, value in data.items()}
     try:
         return cls(**values)
     except SettingsError:
@@ -99,8 +100,18 @@ def from_dict(cls, data: dict[str, Any], source: str | Path | None = None, prefi
         raise SettingsError(source, prefix.rstrip(".") or None, str(e)) from None
 
 
-def _check(hint, value, source, name: str):
-    """`value` as a field of type `hint` (dotted name `name`) holds it; SettingsError if it cannot."""
+def _default(cls, name: str):
+    """The default value of field `name` of dataclass `cls` (None when it has none)."""
+    f = next(f for f in dataclasses.fields(cls) if f.name == name)
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    return f.default_factory() if f.default_factory is not dataclasses.MISSING else None
+
+
+def _check(hint, value, source, name: str, default=None):
+    """`value` as a field of type `hint` (dotted name `name`) holds it; SettingsError if it cannot. A partial table
+    for a dataclass field changes only the fields it names of that field's `default` (the coarse rigid fit of
+    `[detect.coarse]` stays rigid when a file sets only its points)."""
     def fail(reason: str):
         raise SettingsError(source, name, f"{reason}, not {value!r}"[:200])
 
@@ -111,7 +122,11 @@ def _check(hint, value, source, name: str):
         (hint,) = [a for a in args if a is not type(None)]
         return _check(hint, value, source, name)
     if dataclasses.is_dataclass(hint):
-        return from_dict(hint, value, source, name + ".")
+        parsed = from_dict(hint, value, source, name + ".")
+        if isinstance(default, hint):
+            return dataclasses.replace(default, **{f.name: getattr(parsed, f.name) for f in dataclasses.fields(hint)
+                                                   if f.name in value})
+        return parsed
     if hint is Any:
         return value
     if hint is bool:

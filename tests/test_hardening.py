@@ -1,6 +1,7 @@
 """Issue 12: what a new user, a fuzzer and a damaged disk found — memory bombs, damaged stores and caches, settings,
 exit codes, failure records, failures as misses, output names, demo data and concurrent enrolments."""
 
+import dataclasses
 import csv
 import gzip
 import json
@@ -372,6 +373,18 @@ def test_preprocessing_settings_are_checked_field_by_field(tmp_path, text, where
     with pytest.raises(SettingsError) as e:
         PreprocessConfig.load(path)
     assert str(e.value).startswith(f"{path}: {where}") and "\n" not in str(e.value)
+
+
+def test_a_partial_table_changes_only_what_it_names(tmp_path):
+    # the coarse fit's defaults differ from ModelFitConfig's: a file setting only its points keeps it rigid
+    path = tmp_path / "coarse.toml"
+    path.write_text("[detect.coarse]\nmax_points = 400\n[detect.model]\niterations = 7\n")
+    cfg = PreprocessConfig.load(path)
+    default = PreprocessConfig().detect
+    assert cfg.detect.coarse == dataclasses.replace(default.coarse, max_points=400)
+    assert cfg.detect.coarse.identity_modes == 0 and not cfg.detect.coarse.expression_modes
+    assert cfg.detect.model == dataclasses.replace(default.model, iterations=7)
+    assert cfg.detect.candidates == default.candidates
 
 
 @pytest.mark.parametrize("method, options, where", [
