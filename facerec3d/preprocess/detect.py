@@ -93,7 +93,8 @@ class DetectConfig:
     #                             "A face fits smoother than hair")
     coarse: ModelFitConfig = field(default_factory=lambda: ModelFitConfig(
         identity_modes=0, expression_modes=False, iterations=15, start_distance_mm=20.0, end_distance_mm=5.0,
-        max_points=800))  # rigid fit of the mean face, to verify each candidate
+        max_points=400))  # rigid fit of the mean face, to verify each candidate (400 points, not 800: 1.25× faster
+    #                      preprocessing; on rap3df-2019 the nose moved on 20 of 521 frames, 7 onto the face, 7 off)
     model: ModelFitConfig = field(default_factory=ModelFitConfig)  # full fit of the winner
 
 

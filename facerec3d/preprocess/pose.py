@@ -53,7 +53,7 @@ class ModelFitConfig:
     end_distance_mm: float = 3.0
     regularisation: float = 1.0  # λ of the Gaussian prior on the coefficients (mm²)
     radius_mm: float = 95.0  # model vertices this close to the mean nose tip take part
-    max_points: int = 3000  # scan points used (an even subset of those given)
+    max_points: int = 1500  # scan points used (an even subset of those given)
     core_radius_mm: float = 60.0  # the fit is scored on the scan points this near the nose tip ...
     inlier_mm: float = 2.5  # ... as the share of them this near the model surface
 
@@ -386,6 +386,18 @@ def _rigid_step(J, r, R, t):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
+def _rigid_fit(points, R, t, cutoffs, prev, V, normals, boundary, basis, *grid):  # pragma: no cover - compiled
+    """`fit_face_model`'s iterations without modes, least squares: (R, t) after one `_rigid_step` per cut-off
+    (stopping when fewer than 50 pairs are left), as its Python loop does them, without a call per iteration."""
+    for cutoff in cutoffs:
+        J, r = _linearise(points, R, t, cutoff, prev, V, normals, boundary, basis, *grid)
+        if r.shape[0] < 50:
+            break
+        R, t = _rigid_step(J, r, R, t)
+    return R, t
+
+
+@njit(cache=True)
 def _moved(x, R, t):  # pragma: no cover - compiled
     """The pose (R, t) after a linearised step x (rotation vector x[:3], translation x[3:6]): R ← dR R,
     t ← dR t + x[3:6]."""
@@ -461,8 +473,12 @@ def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: Mod
     reg = np.zeros(6 + K)
     reg[6:] = config.regularisation
     prior = np.diag(reg)
-    for i in range(n):
-        cutoff = config.start_distance_mm + (config.end_distance_mm - config.start_distance_mm) * i / max(n - 1, 1)
+    cutoffs = [config.start_distance_mm + (config.end_distance_mm - config.start_distance_mm) * i / max(n - 1, 1)
+               for i in range(n)]  # the shrinking cut-off of each iteration
+    if not K and robust_mm is None:  # a rigid fit: every iteration in one compiled call
+        R, t = _rigid_fit(points, R, t, np.array(cutoffs), prev, V, normals, fb.boundary, fb.basis, *grid.args())
+        cutoffs = []
+    for cutoff in cutoffs:
         J, r = _linearise(points, R, t, cutoff, prev, V, normals, fb.boundary, fb.basis, *grid.args())
         if len(r) < 50:
             break
