@@ -24,7 +24,7 @@ with no such placement: nothing scanned, a wall, the back of a head, a hand.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
@@ -34,7 +34,7 @@ from scipy.sparse.csgraph import connected_components
 
 from facerec3d.errors import FailureToAcquire, short_of
 from facerec3d.geometry.transforms import rotation_from_euler
-from facerec3d.preprocess.pose import ModelFit, ModelFitConfig, fit_face_model, hotelling_rotation, model_nose_tip
+from facerec3d.preprocess.pose import ModelFit, ModelFitConfig, fit_face_model, hotelling_rotation
 from facerec3d.scan import FaceScan
 
 
@@ -91,7 +91,6 @@ class DetectConfig:
     #                             face and took none off it, but moved 4 of 300 synthetic outside-model faces with a hand
     #                             130–170 mm away, whose own fit is rougher than a smooth surface's (docs/methods.md,
     #                             "A face fits smoother than hair")
-    refine_iterations: int = 0  # the winner's full fit continued this many iterations at its last cut-off (0: none)
     coarse: ModelFitConfig = field(default_factory=lambda: ModelFitConfig(
         identity_modes=0, expression_modes=False, iterations=15, start_distance_mm=20.0, end_distance_mm=5.0,
         max_points=800))  # rigid fit of the mean face, to verify each candidate (400 points: 1.25× faster, but the
@@ -286,12 +285,6 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
     passing.sort(key=lambda x: disc_coverage(around.points(x[0], _disc_reach(config)), x[0], pitch, config)
                  < config.min_disc_coverage)
     fit, protrusion = passing[0]
-    if config.refine_iterations:
-        m = config.model
-        fit = fit_face_model(around.points(fit, config.context_mm, exact=True), fit.R,
-                             fit.t + model_nose_tip(fit.coefficients, m),
-                             replace(m, iterations=config.refine_iterations, start_distance_mm=m.end_distance_mm),
-                             start=fit.coefficients)
     return Detection(fit.landmarks["nose_tip"], fit.R, fit.t, fit.landmarks, fit.rms_mm, fit.inlier_fraction,
                      protrusion, fit.coefficients)
 
