@@ -53,8 +53,7 @@ class ModelFitConfig:
     end_distance_mm: float = 3.0
     regularisation: float = 1.0  # λ of the Gaussian prior on the coefficients (mm²)
     radius_mm: float = 95.0  # model vertices this close to the mean nose tip take part
-    max_points: int = 1500  # scan points used (an even subset of those given; 3000 until 2026-12-03: a Kinect face
-    #                         gives ~1,100 near its nose, a 480 × 640 laser scan ~20,000, where 1500 is 1.2× faster)
+    max_points: int = 3000  # scan points used (an even subset of those given)
     core_radius_mm: float = 60.0  # the fit is scored on the scan points this near the nose tip ...
     inlier_mm: float = 2.5  # ... as the share of them this near the model surface
 
