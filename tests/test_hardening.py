@@ -1,8 +1,8 @@
 """Issue 12: what a new user, a fuzzer and a damaged disk found — memory bombs, damaged stores and caches, settings,
 exit codes, failure records, failures as misses, output names, demo data and concurrent enrolments."""
 
-import dataclasses
 import csv
+import dataclasses
 import gzip
 import json
 import os
@@ -14,6 +14,7 @@ import subprocess
 import sys
 import zipfile
 from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -385,6 +386,19 @@ def test_a_partial_table_changes_only_what_it_names(tmp_path):
     assert cfg.detect.coarse.identity_modes == 0 and not cfg.detect.coarse.expression_modes
     assert cfg.detect.model == dataclasses.replace(default.model, iterations=7)
     assert cfg.detect.candidates == default.candidates
+
+
+@pytest.mark.parametrize("path", sorted((Path(__file__).parents[1] / "examples").glob("*.toml")), ids=lambda p: p.name)
+def test_every_example_settings_file_loads(path):
+    """The settings files the docs name: preprocess-*.toml as preprocessing, the others as the settings of the method
+    their name starts with (the longest such name)."""
+    if path.name.startswith("preprocess-"):
+        assert PreprocessConfig.load(path) != PreprocessConfig()
+        return
+    from facerec3d.matching.registry import METHODS
+
+    method = max((m for m in METHODS if path.stem.startswith(m)), key=len, default="region-icp")  # region-committee
+    assert make_matcher(method, read_settings(path)) is not None
 
 
 @pytest.mark.parametrize("method, options, where", [

@@ -159,3 +159,37 @@ def test_a_rougher_fit_is_ranked_down_by_its_relative_excess_whatever_the_sensor
     # at the weight measured on rap3df-2019 (2; off by default), hair's typical excess outweighs the largest
     # nose-prominence bonus
     assert cfg.rms_weight == 0.0 and 2.0 * rms_excess(0.88, 0.65, cfg.rms_tolerance) > cfg.prominence_weight
+
+
+def test_a_robust_model_fit_is_pulled_less_by_a_hand_or_glasses():
+    """`ModelFitConfig.robust_mm` (the Cauchy M-estimator, off by default): the full model fit of 12 outside-model
+    faces with a hand or glasses, started 7° and 6.4 mm off the true pose, puts the nose tip nearer the truth than least
+    squares does (measured: mean 1.6 against 2.3 mm, worst 2.9 against 5.2 mm). Set in the config it is the same fit
+    as asked for by argument (`morphable.refit` does that), in the compiled rigid fit as in the full one."""
+    from dataclasses import replace
+
+    from facerec3d.geometry.transforms import rotation_from_euler
+    from facerec3d.preprocess.detect import DetectConfig
+    from facerec3d.preprocess.pose import fit_face_model
+
+    model, coarse = DetectConfig().model, DetectConfig().coarse
+    errors = {0.0: [], 3.0: []}
+    for occluder in ("hand", "glasses"):
+        for seed in range(6):
+            s = quick_scan(seed, "neutral", yaw=10.0, seed=seed, identity=identity_profile("outside-model"),
+                           occluder=occluder)
+            nose = s.landmarks["nose_tip"]
+            near = s.scan.points[np.linalg.norm(s.scan.points - nose, axis=1) <= 100.0]
+            R0 = rotation_from_euler(6.0, 4.0, 0.0) @ s.rotation.T
+            t0 = -R0 @ nose + np.array([4.0, -4.0, 3.0])
+            for robust in errors:
+                fit = fit_face_model(near, R0, t0, replace(model, robust_mm=robust))
+                errors[robust].append(np.linalg.norm(fit.landmarks["nose_tip"] - nose))
+            if seed == 0:
+                for c in (model, coarse):
+                    by_config = fit_face_model(near, R0, t0, replace(c, robust_mm=3.0))
+                    by_argument = fit_face_model(near, R0, t0, c, robust_mm=3.0)
+                    assert np.array_equal(by_config.R, by_argument.R) and np.array_equal(by_config.t, by_argument.t)
+                    assert not np.array_equal(by_config.R, fit_face_model(near, R0, t0, c).R)
+    least_squares, robust = np.array(errors[0.0]), np.array(errors[3.0])
+    assert robust.mean() < 0.8 * least_squares.mean() and robust.max() < least_squares.max(), (robust, least_squares)

@@ -56,6 +56,7 @@ class ModelFitConfig:
     max_points: int = 3000  # scan points used (an even subset of those given)
     core_radius_mm: float = 60.0  # the fit is scored on the scan points this near the nose tip ...
     inlier_mm: float = 2.5  # ... as the share of them this near the model surface
+    robust_mm: float = 0.0  # 0: least squares; else the Cauchy M-estimator's scale (mm, `fit_face_model`)
 
 
 @dataclass(frozen=True)
@@ -386,13 +387,19 @@ def _rigid_step(J, r, R, t):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def _rigid_fit(points, R, t, cutoffs, prev, V, normals, boundary, basis, *grid):  # pragma: no cover - compiled
-    """`fit_face_model`'s iterations without modes, least squares: (R, t) after one `_rigid_step` per cut-off
-    (stopping when fewer than 50 pairs are left), as its Python loop does them, without a call per iteration."""
+def _rigid_fit(points, R, t, cutoffs, robust, prev, V, normals, boundary, basis, *grid):  # pragma: no cover - compiled
+    """`fit_face_model`'s iterations without modes: (R, t) after one `_rigid_step` per cut-off (stopping when fewer
+    than 50 pairs are left; rows weighted as its IRLS does when `robust` > 0), as its Python loop does them,
+    without a call per iteration."""
     for cutoff in cutoffs:
         J, r = _linearise(points, R, t, cutoff, prev, V, normals, boundary, basis, *grid)
         if r.shape[0] < 50:
             break
+        if robust > 0:
+            for i in range(r.shape[0]):
+                w = np.sqrt(1.0 / (1.0 + (r[i] / robust) ** 2))
+                J[i, :] *= w
+                r[i] *= w
         R, t = _rigid_step(J, r, R, t)
     return R, t
 
@@ -453,12 +460,14 @@ def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: Mod
     prior of weight λ on the coefficients. Pairing from the scan side means
     self-occluded parts of the face do not pull the fit. `start`: the mode
     coefficients to start from (None: the mean face). `robust_mm`: None
-    for least squares, else each pair is weighted 1 / (1 + (r / robust_mm)²)
+    for the config's (`ModelFitConfig.robust_mm`, 0: least squares), else
+    each pair is weighted 1 / (1 + (r / robust_mm)²)
     (the Cauchy M-estimator by iteratively reweighted least squares; Zhang,
     "Parameter estimation techniques", IVC 1997), so points the model
     cannot explain, such as an occluder lying near the face, pull it less.
     """
     fb = _fit_basis(config)
+    robust_mm = robust_mm if robust_mm is not None else (config.robust_mm or None)
     points = np.ascontiguousarray(points[:: max(1, len(points) // config.max_points)], dtype=np.float64)
     K = fb.basis.shape[2]
     c = np.zeros(K) if start is None else np.array(start, dtype=np.float64)[:K]
@@ -475,8 +484,9 @@ def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: Mod
     prior = np.diag(reg)
     cutoffs = [config.start_distance_mm + (config.end_distance_mm - config.start_distance_mm) * i / max(n - 1, 1)
                for i in range(n)]  # the shrinking cut-off of each iteration
-    if not K and robust_mm is None:  # a rigid fit: every iteration in one compiled call
-        R, t = _rigid_fit(points, R, t, np.array(cutoffs), prev, V, normals, fb.boundary, fb.basis, *grid.args())
+    if not K:  # a rigid fit: every iteration in one compiled call
+        R, t = _rigid_fit(points, R, t, np.array(cutoffs), robust_mm or 0.0, prev, V, normals, fb.boundary, fb.basis,
+                          *grid.args())
         cutoffs = []
     for cutoff in cutoffs:
         J, r = _linearise(points, R, t, cutoff, prev, V, normals, fb.boundary, fb.basis, *grid.args())
