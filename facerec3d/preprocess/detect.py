@@ -24,7 +24,7 @@ with no such placement: nothing scanned, a wall, the back of a head, a hand.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
@@ -91,22 +91,13 @@ class DetectConfig:
     #                             face and took none off it, but moved 4 of 300 synthetic outside-model faces with a hand
     #                             130–170 mm away, whose own fit is rougher than a smooth surface's (docs/methods.md,
     #                             "A face fits smoother than hair")
-    robust_max_noise_mm: float = 0.4  # the fits below weigh their pairs robustly (their robust_mm) only on scans
-    #                                   whose measured noise is at most this (laser scanners ~0.25 mm; depth cameras
-    #                                   1–2.5 mm, where robust fits did not help: docs/methods.md, "A hand or glasses")
     coarse: ModelFitConfig = field(default_factory=lambda: ModelFitConfig(
         identity_modes=0, expression_modes=False, iterations=15, start_distance_mm=20.0, end_distance_mm=5.0,
-        max_points=800, robust_mm=3.0))  # rigid fit of the mean face, to verify each candidate (400 points: 1.25× faster, but the
+        max_points=800))  # rigid fit of the mean face, to verify each candidate (400 points: 1.25× faster, but the
     #                      rap3df-2019 held-out rank-1 fell 1–4 points, docs/benchmarks.md)
-    model: ModelFitConfig = field(default_factory=lambda: ModelFitConfig(max_points=1500, robust_mm=3.0))  # full fit
-    #   of the finalists (1500 points, 3000 until 2026-12-03: a Kinect face gives ~1,100 near its nose, a 480 × 640
-    #   laser scan ~20,000, where 1500 make preprocessing 1.2× faster)
-
-    def for_noise(self, noise_mm: float) -> "DetectConfig":
-        """These settings for a scan of this measured noise (mm): least-squares fits above `robust_max_noise_mm`."""
-        if noise_mm <= self.robust_max_noise_mm:
-            return self
-        return replace(self, coarse=replace(self.coarse, robust_mm=0.0), model=replace(self.model, robust_mm=0.0))
+    model: ModelFitConfig = field(default_factory=lambda: ModelFitConfig(max_points=1500))  # full fit of the finalists
+    #   (1500 points, 3000 until 2026-12-03: a Kinect face gives ~1,100 near its nose, a 480 × 640 laser scan ~20,000,
+    #   where 1500 make preprocessing 1.2× faster)
 
 
 @dataclass(frozen=True)

@@ -119,13 +119,13 @@ class Preprocessor:
 
     def __call__(self, scan: FaceScan) -> FaceScan:
         cfg = self.config
-        scan, view = self._timed("orient", orient, scan, cfg.orient, cfg.detect.for_noise(np.inf))
+        scan, view = self._timed("orient", orient, scan, cfg.orient, cfg.detect)
         scan = self._timed("gridify", gridify, scan, cfg.gridify_mm)
         sampling = self._timed("measure", measure_sampling, scan)
         scan = self._timed("spikes", remove_spikes, scan, cfg.spikes, sampling)
         measured = scan
         scan = self._timed("smooth", smooth_range_image, scan, *cfg.smooth.sigmas(sampling))
-        found = self._timed("detect", detect_face, scan, cfg.detect.for_noise(sampling.noise_mm))
+        found = self._timed("detect", detect_face, scan, cfg.detect)
         scan = self._timed("dequantise", dequantise, scan, measured, sampling.depth_step_mm, found.nose_tip,
                            cfg.crop_radius_mm, cfg.dequantise)
         face = self._timed("crop", crop_sphere, scan, found.nose_tip, cfg.crop_radius_mm)
