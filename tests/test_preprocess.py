@@ -191,5 +191,7 @@ def test_a_robust_model_fit_is_pulled_less_by_a_hand_or_glasses():
                     by_argument = fit_face_model(near, R0, t0, c, robust_mm=3.0)
                     assert np.array_equal(by_config.R, by_argument.R) and np.array_equal(by_config.t, by_argument.t)
                     assert not np.array_equal(by_config.R, fit_face_model(near, R0, t0, c).R)
+                    least_squares = fit_face_model(near, R0, t0, replace(c, robust_mm=3.0), robust_mm=0.0)
+                    assert np.array_equal(least_squares.R, fit_face_model(near, R0, t0, c).R)
     least_squares, robust = np.array(errors[0.0]), np.array(errors[3.0])
     assert robust.mean() < 0.8 * least_squares.mean() and robust.max() < least_squares.max(), (robust, least_squares)

@@ -460,14 +460,14 @@ def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: Mod
     prior of weight λ on the coefficients. Pairing from the scan side means
     self-occluded parts of the face do not pull the fit. `start`: the mode
     coefficients to start from (None: the mean face). `robust_mm`: None
-    for the config's (`ModelFitConfig.robust_mm`, 0: least squares), else
+    for the config's (`ModelFitConfig.robust_mm`), 0 for least squares, else
     each pair is weighted 1 / (1 + (r / robust_mm)²)
     (the Cauchy M-estimator by iteratively reweighted least squares; Zhang,
     "Parameter estimation techniques", IVC 1997), so points the model
     cannot explain, such as an occluder lying near the face, pull it less.
     """
     fb = _fit_basis(config)
-    robust_mm = robust_mm if robust_mm is not None else (config.robust_mm or None)
+    robust_mm = (config.robust_mm if robust_mm is None else robust_mm) or None
     points = np.ascontiguousarray(points[:: max(1, len(points) // config.max_points)], dtype=np.float64)
     K = fb.basis.shape[2]
     c = np.zeros(K) if start is None else np.array(start, dtype=np.float64)[:K]
