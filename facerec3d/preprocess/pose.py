@@ -487,17 +487,13 @@ def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: Mod
     if not K:  # a rigid fit: every iteration in one compiled call
         R, t = _rigid_fit(points, R, t, np.array(cutoffs), robust_mm or 0.0, prev, V, normals, fb.boundary, fb.basis,
                           *grid.args())
-        cutoffs = []
-    for cutoff in cutoffs:
+    for cutoff in cutoffs if K else []:
         J, r = _linearise(points, R, t, cutoff, prev, V, normals, fb.boundary, fb.basis, *grid.args())
         if len(r) < 50:
             break
         if robust_mm is not None:  # IRLS: rows scaled by the square root of the Cauchy weight
             w = np.sqrt(1.0 / (1.0 + (r / robust_mm) ** 2))
             J, r = J * w[:, None], r * w
-        if not K:
-            R, t = _rigid_step(J, r, R, t)
-            continue
         x = np.linalg.solve(J.T @ J + prior, -(J.T @ r) - reg * np.concatenate([np.zeros(6), c]))
         R, t = _moved(x, R, t)
         c = c + x[6:]
