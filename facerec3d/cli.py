@@ -761,6 +761,10 @@ def gallery_rekey(store, new_key_file):
               help="Channels of the network's first block (doubling per block).")
 @click.option("--seed", default=0, show_default=True, help="Seed of the network's initialisation and batches.")
 @click.option("--data-seed", default=2026, show_default=True, help="Seed of the synthetic faces, poses and sensors.")
+@click.option("--max-yaw", default=45.0, show_default=True, type=click.FloatRange(0, 90),
+              help="Head turns drawn up to this many degrees left or right.")
+@click.option("--max-pitch", default=20.0, show_default=True, type=click.FloatRange(0, 60),
+              help="Heads tilted up to this many degrees up or down.")
 @click.option("--trainset", type=click.Path(dir_okay=False),
               help="File keeping the preprocessed training faces, reused when its recipe is the same "
                    "[default: OUT with .trainset.npz].")
@@ -774,8 +778,8 @@ def gallery_rekey(store, new_key_file):
 @click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores",
               help="Processes making the training faces; torch trains on as many threads.")
 @friendly
-def train_embedding(out, identities, scans, sensors, identity_profiles, epochs, width, seed, data_seed, trainset,
-                    real, real_subjects, init, cache, jobs):
+def train_embedding(out, identities, scans, sensors, identity_profiles, epochs, width, seed, data_seed, max_yaw,
+                    max_pitch, trainset, real, real_subjects, init, cache, jobs):
     """Train the learned embedding on synthetic faces (and --real people) and write OUT (ONNX), its card
     (OUT with .json) and weights (.weights.npz). Needs the [train] extra (PyTorch); using a model never does:
     --method embedding with the method setting model = "OUT"."""
@@ -789,7 +793,7 @@ def train_embedding(out, identities, scans, sensors, identity_profiles, epochs, 
 
     try:
         recipe = DataRecipe(identities, scans, tuple(s for s in sensors.split(",") if s),
-                            tuple(s for s in identity_profiles.split(",") if s), data_seed)
+                            tuple(s for s in identity_profiles.split(",") if s), data_seed, max_yaw, max_pitch)
     except ValueError as e:
         raise click.BadParameter(str(e)) from None
     inputs = InputRecipe()

@@ -233,3 +233,23 @@ def test_the_service_enrols_and_identifies_with_the_embedding_and_its_screen(tmp
         assert candidates[0]["subject"] == "s1", candidates
         assert len(candidates) == (2 if "screen" in form else 3)
         assert candidates[0]["score"] > candidates[1]["score"]
+
+
+def test_training_poses_follow_the_recipes_ranges_and_the_cli_checks_them():
+    """`train-embedding --max-yaw / --max-pitch` reach the drawn poses; an identity's first scan is near-frontal."""
+    from click.testing import CliRunner
+
+    from facerec3d.cli import main
+    from facerec3d.training.data import DataRecipe, training_pose
+
+    rng = np.random.default_rng(0)
+    for recipe in (DataRecipe(), DataRecipe(max_yaw=80.0, max_pitch=30.0)):
+        poses = np.array([training_pose(rng, recipe) for _ in range(400)])
+        limits = np.array([recipe.max_yaw, recipe.max_pitch, recipe.max_roll])
+        assert np.all(np.abs(poses) <= limits) and np.all(np.abs(poses).max(axis=0) > 0.9 * limits)
+        first = np.array([training_pose(rng, recipe, first=True) for _ in range(100)])
+        assert np.all(np.abs(first) <= 0.2 * limits)
+    with pytest.raises(ValueError, match="max_yaw"):
+        DataRecipe(max_yaw=120.0)
+    result = CliRunner().invoke(main, ["train-embedding", "out.onnx", "--max-yaw", "120"])
+    assert result.exit_code == 2 and "--max-yaw" in result.output

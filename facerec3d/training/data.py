@@ -44,8 +44,8 @@ class DataRecipe:
     sensors: tuple[str, ...] = SENSORS  # drawn per scan
     identity_profiles: tuple[str, ...] = IDENTITIES  # taken in turn by identity
     seed: int = 2026  # the generator's seed (identity coefficients) and every draw of poses and sensors
-    max_yaw: float = 45.0
-    max_pitch: float = 20.0
+    max_yaw: float = 45.0  # degrees either way (--max-yaw)
+    max_pitch: float = 20.0  # degrees up or down (--max-pitch)
     max_roll: float = 10.0
     expression_share: float = 0.5  # share of scans with an expression (strength 0.3–1)
     margin: int = 4  # extra input cells kept on each side of the window, for shifted crops in training
@@ -55,6 +55,8 @@ class DataRecipe:
 
         if self.identities < 2 or self.scans < 2:
             raise ValueError("need at least 2 identities and 2 scans per identity")
+        if not (0 <= self.max_yaw <= 90 and 0 <= self.max_pitch <= 60 and 0 <= self.max_roll <= 45):
+            raise ValueError("head poses: need 0 ≤ max_yaw ≤ 90, 0 ≤ max_pitch ≤ 60, 0 ≤ max_roll ≤ 45 (degrees)")
         for field_, names, known in (("sensors", self.sensors, SENSOR_PROFILES),
                                      ("identity_profiles", self.identity_profiles, IDENTITY_PROFILES)):
             if not names or set(names) - set(known):
@@ -97,6 +99,13 @@ def training_window(face: FaceScan, inputs: InputRecipe, margin: int) -> np.ndar
     return window_depth(seen_depth(face), wider).astype(np.float32)
 
 
+def training_pose(rng: np.random.Generator, recipe: DataRecipe, first: bool = False) -> np.ndarray:
+    """A training scan's head pose (yaw, pitch, roll; degrees), uniform within the recipe's ranges; an identity's
+    first scan is near-frontal (a fifth of the ranges), as an enrolment would be."""
+    pose = rng.uniform(-1, 1, 3) * (recipe.max_yaw, recipe.max_pitch, recipe.max_roll)
+    return pose * 0.2 if first else pose
+
+
 def _identity_scans(identity: int, recipe: DataRecipe, inputs: InputRecipe) -> list[tuple[np.ndarray | None, str]]:
     """The windows (None: failed to preprocess) and sensors of one training identity's scans."""
     from facerec3d.datasets.synthetic import FaceScanner, ScanSpec, identity_profile, sensor_profile
@@ -115,9 +124,7 @@ def _identity_scans(identity: int, recipe: DataRecipe, inputs: InputRecipe) -> l
         expression, strength = "neutral", 1.0
         if rng.random() < recipe.expression_share:
             expression, strength = EXPRESSIONS[rng.integers(len(EXPRESSIONS))], float(rng.uniform(0.3, 1.0))
-        pose = rng.uniform(-1, 1, 3) * (recipe.max_yaw, recipe.max_pitch, recipe.max_roll)
-        if k == 0:
-            pose *= 0.2  # every identity has a near-frontal scan, as an enrolment would
+        pose = training_pose(rng, recipe, first=k == 0)
         occluders = profile.occluders
         occluder = occluders[rng.integers(len(occluders))] if rng.random() < 0.5 else None
         spec = ScanSpec(subject, expression, strength, *map(float, pose), seed=k, occluder=occluder)

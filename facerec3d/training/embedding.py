@@ -32,6 +32,11 @@ try:
     from torch import nn
 except ImportError:  # pragma: no cover - the [train] extra
     raise FaceRec3DError("training an embedding needs PyTorch: pip install 'facerec3d[train]'") from None
+try:  # the ONNX exporter's own needs, checked before hours of training rather than after
+    import onnx  # noqa: F401
+    import onnxscript  # noqa: F401
+except ImportError as e:  # pragma: no cover - the [train] extra
+    raise FaceRec3DError(f"exporting a trained embedding needs {e.name}: pip install 'facerec3d[train]'") from None
 
 
 @dataclass(frozen=True)
@@ -235,6 +240,7 @@ def export(net: EmbeddingNet, out: str | Path, recipe: InputRecipe, card: dict[s
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     net.eval()
+    save_weights(net, out.with_suffix(".weights.npz"))  # first: a failed export keeps the trained network
     dummy = torch.zeros(1, N_CHANNELS, recipe.size, recipe.size)
     names: dict[str, Any] = {"input_names": ["face"], "output_names": ["embedding"]}
     try:  # torch.export's exporter (onnxscript), one self-contained file, the batch axis free
@@ -246,5 +252,4 @@ def export(net: EmbeddingNet, out: str | Path, recipe: InputRecipe, card: dict[s
     card = {"name": out.stem, "format": "onnx", "embedding_dim": net.head[-1].num_features,
             "input": asdict(recipe), "license": "MIT", **card}
     card_path(out).write_text(json.dumps(card, indent=1) + "\n")
-    save_weights(net, out.with_suffix(".weights.npz"))
     return out
