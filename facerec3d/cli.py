@@ -25,6 +25,8 @@ def friendly(fn):
         except BrokenPipeError:  # the reader went away (`| head`): not an error of this command
             raise
         except (FaceRec3DError, OSError) as e:
+            if isinstance(e, OSError) and e.filename is not None and e.strerror:  # not "[Errno 2] ...: 'x'"
+                e = f"{e.filename}: {e.strerror[:1].lower()}{e.strerror[1:]}"
             click.echo(f"error: {e}", err=True)
             sys.exit(2)
 
@@ -97,8 +99,9 @@ def convert(src, dst):
 
 @main.command()
 @click.argument("out", type=click.Path(file_okay=False))
-@click.option("--subjects", default=20, show_default=True, help="Number of subjects.")
-@click.option("--scans", default=4, show_default=True, help="Scans per subject (the first is neutral and frontal).")
+@click.option("--subjects", default=20, show_default=True, type=click.IntRange(min=1), help="Number of subjects.")
+@click.option("--scans", default=4, show_default=True, type=click.IntRange(min=1),
+              help="Scans per subject (the first is neutral and frontal).")
 @click.option("--format", "fmt", type=click.Choice(["abs", "bnt", "png"]), default="abs", show_default=True,
               help="FRGC (.abs.gz in nd1/<session>/) or Bosphorus (.bnt) layout, or a depth camera's 16-bit frames "
                    "(<subject>/front_1.png, ... with intrinsics.json).")
@@ -117,8 +120,8 @@ def convert(src, dst):
               default="model", show_default=True,
               help="Faces from the morphable model, or beyond it: wider identities, a non-linear deformation and "
               "occluders (hair fringe, glasses, hand); outside-model-unoccluded: the same faces without the occluders.")
-@click.option("--rows", type=int, help="Range image rows (default: the sensor's).")
-@click.option("--cols", type=int, help="Range image columns (default: the sensor's; the focal length scales with it).")
+@click.option("--rows", type=click.IntRange(min=16), help="Range image rows (default: the sensor's).")
+@click.option("--cols", type=click.IntRange(min=16), help="Range image columns (default: the sensor's; the focal length scales with it).")
 @friendly
 def synth(out, subjects, scans, fmt, seed, first_subject, expressions, expression_strength, sensor, identities, rows,
           cols):
@@ -151,8 +154,9 @@ def view(file, output, with_face):
     """Render scan FILE (shaded depth) before and after preprocessing, landmarks marked, to a PNG."""
     from facerec3d.io import load_scan
     from facerec3d.preprocess import Preprocessor, gridify, landmarks_in_input_frame
-    from facerec3d.render import render
+    from facerec3d.render import check_image_path, render
 
+    check_image_path(output)  # before the work: a format or folder that cannot be written says so at once
     scan = gridify(load_scan(file))
     panels = [(f"{Path(file).name} (raw)", scan)]
     if with_face:
@@ -173,7 +177,8 @@ LANDMARK_COLUMNS = ("nose_tip", "nose_bridge", "left_eye_inner", "right_eye_inne
 @click.option("-o", "--out", "outdir", required=True, type=click.Path(file_okay=False))
 @click.option("--config", "config_file", type=click.Path(dir_okay=False), help="TOML or JSON preprocessing settings.")
 @click.option("--format", "fmt", type=click.Choice(["npz", "ply"]), default="npz", show_default=True)
-@click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", help="Processes to use.")
+@click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", type=click.IntRange(min=1),
+              help="Processes to use.")
 @click.option("--intrinsics", type=click.Path(dir_okay=False), default=None,
               help="Depth frames: pinhole intrinsics JSON (fx, fy, cx, cy); default: an intrinsics.json beside them.")
 @friendly
@@ -240,7 +245,7 @@ def _engine_options(fn):
     """--jobs and --scheduler, shared by the commands that match."""
     fn = click.option("--scheduler", help="Dask scheduler address (e.g. tcp://host:8786): shard the gallery over "
                       "its workers instead of local processes (pip install 'facerec3d[distributed]').")(fn)
-    return click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores",
+    return click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", type=click.IntRange(min=1),
                         help="Processes to use (the gallery is split into one shard per process).")(fn)
 
 
@@ -365,6 +370,9 @@ def _print_metrics(m: dict) -> None:
     for row in (columns, *rows):
         click.echo("  ".join(f"{c:<{w}}" if k == 0 else f"{c:>{w}}" for k, (c, w) in enumerate(zip(row, widths))))
     click.echo("(value (95% interval), subject-level bootstrap)" if m.get("ci95") else "")
+    if m.get("rank1_all") is not None and m.get("rank1_all") != m.get("rank1"):  # failures to acquire or enrol
+        click.echo(f"rank-1 over every probe, failures to acquire and probes of unenrolled subjects counted as "
+                   f"misses: {format_value('rank1_all', m['rank1_all'])} (the figure to compare systems on)")
     click.echo("thresholds (score >= t accepts): " + ", ".join(
         f"{name} {format_value('', m.get(key))}" for name, key in
         (("EER", "threshold_at_eer"), ("FMR 0.1%", "threshold_at_far_0.001"), ("FMR 1%", "threshold_at_far_0.01"))))
@@ -386,7 +394,7 @@ _OVERWRITE_OPTION = click.option("--overwrite", is_flag=True, help="Replace the 
 def _bootstrap_options(fn):
     """--bootstrap and --seed: the 95 % intervals of every figure."""
     fn = click.option("--seed", default=0, show_default=True, help="Seed of the bootstrap draws.")(fn)
-    return click.option("--bootstrap", default=1000, show_default=True,
+    return click.option("--bootstrap", default=1000, show_default=True, type=click.IntRange(min=0),
                         help="Bootstrap replicates (resampling probe subjects) for the 95% intervals; 0: none.")(fn)
 
 
@@ -420,6 +428,18 @@ def evaluate(data, method, method_config, train, model, out, overwrite, protocol
     from facerec3d.evaluation.run import evaluate as run
     from facerec3d.preprocess import PreprocessConfig
 
+    from click.core import ParameterSource
+
+    from facerec3d.datasets.catalog import open_dataset
+    from facerec3d.errors import InputError
+
+    if model and click.get_current_context().get_parameter_source("method") is ParameterSource.COMMANDLINE:
+        raise InputError(f"{model}: a saved model brings its own method: give --model or --method, not both")
+    if train:
+        shared = {r.subject for r in open_dataset(train).records} & {r.subject for r in open_dataset(data).records}
+        if shared:
+            click.echo(f"warning: {train}: {len(shared)} of its subjects (e.g. {sorted(shared)[0]}) are also in "
+                       f"{data}: a model trained on the people it is tested on flatters the figures", err=True)
     config = PreprocessConfig.load(config_file) if config_file else PreprocessConfig()
     options = read_settings(method_config) if method_config else None
     m = run(data, method, out, protocol=protocol, jobs=jobs, scheduler=scheduler, cache=_cache_folder(cache),
@@ -434,7 +454,8 @@ def evaluate(data, method, method_config, train, model, out, overwrite, protocol
 @click.argument("data", nargs=-1, required=True, type=click.Path(exists=True))
 @click.option("--gallery", "gallery", type=click.Path(dir_okay=False),
               help="Gallery store (SQLite file; made if missing); or --server.")
-@click.option("--method", default=DEFAULT_METHOD, show_default=True, help="Matching method (as for evaluate).")
+@click.option("--method", help=f"Matching method of a new gallery (as for evaluate; default {DEFAULT_METHOD}); "
+              "an existing gallery's own when not given.")
 @click.option("--method-config", type=click.Path(exists=True, dir_okay=False), help="TOML or JSON method settings.")
 @click.option("--train", type=click.Path(exists=True), help="Training dataset for learnt methods (pca, lda).")
 @click.option("--model", type=click.Path(exists=True, dir_okay=False), help="Saved model instead of --method/--train.")
@@ -444,7 +465,7 @@ def evaluate(data, method, method_config, train, model, out, overwrite, protocol
 @_CACHE_OPTION
 @click.option("--calibrate/--no-calibrate", default=True, show_default=True,
               help="After enrolling, calibrate the gallery's verification threshold on its own scans (FMR 1 %; "
-                   "see 'gallery STORE calibrate').")
+                   "see 'gallery STORE calibrate'); a threshold calibrated on scans given for it is kept.")
 @_engine_options
 @_server_options
 @_edge_option
@@ -474,8 +495,10 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
     cache = _cache_folder(cache)
     records = scan_records(data, subject, gallery_only)
     with Engine.create(jobs, scheduler) as engine:
-        matcher, _ = trained_matcher(method, options, train=train, model=model, workers=engine, cache=cache,
-                                     config=config)
+        matcher = _gallery_matcher(gallery) if method is None and not (options or train or model) else None
+        if matcher is None:
+            matcher, _ = trained_matcher(method or DEFAULT_METHOD, options, train=train, model=model, workers=engine,
+                                         cache=cache, config=config)
         with GalleryStore(gallery, create=True) as store, tqdm(total=len(records), unit="scan", desc="enrolling") as bar:
             def show(source, status):
                 bar.update()
@@ -486,17 +509,33 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
             total = store.stats()["entries"]
         if calibrate and report.enrolled:
             with GalleryStore(gallery) as store:
-                _calibrate_threshold(store, None, 0.01, engine, cache, quiet_if_impossible=True)
+                kept = store.threshold()
+                if kept is not None and kept.get("data") != "the gallery's own scans":
+                    # a threshold calibrated on scans given for it is the user's choice: not replaced behind them
+                    click.echo(f"kept the verification threshold {kept['value']:.4g} calibrated on {kept['data']} "
+                               f"(recalibrate: facerec3d gallery {gallery} calibrate ...)")
+                else:
+                    _calibrate_threshold(store, None, 0.01, engine, cache, quiet_if_impossible=True)
     click.echo(f"{report.enrolled} enrolled, {len(report.skipped)} already enrolled, {len(report.failures)} failed "
                f"to enrol; {gallery}: {total} entries")
     if report.failures and not report.enrolled and not report.skipped:
         sys.exit(1)  # nothing succeeded
 
 
+def _gallery_matcher(gallery):
+    """The matcher an existing, non-empty gallery store was enrolled with; None for a new or empty one."""
+    from facerec3d.gallery.store import GalleryStore
+
+    if not Path(gallery).is_file() or not Path(gallery).stat().st_size:
+        return None
+    with GalleryStore(gallery) as store:
+        return store.matcher() if store.stats()["entries"] else None
+
+
 @main.command()
 @click.argument("probe", type=click.Path(exists=True, dir_okay=False))
 @click.option("--gallery", "gallery", type=click.Path(dir_okay=False), help="Gallery store (or --server).")
-@click.option("-k", "k", default=5, show_default=True, help="Number of candidates to list.")
+@click.option("-k", "k", default=5, show_default=True, type=click.IntRange(min=1), help="Number of candidates to list.")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False),
               help="Preprocessing settings; must be the gallery's (default: the gallery's).")
 @_CACHE_OPTION
@@ -598,6 +637,7 @@ class _GalleryGroup(click.Group):
             i += 1 if "=" in args[i] or args[i] == "--help" else 2
         if i < len(args) and args[i] in self.commands:
             args.insert(i, "")  # no STORE
+        ctx.meta["facerec3d.help"] = "--help" in args[i:]  # a command's --help needs no store
         return super().parse_args(ctx, args)
 
 
@@ -607,7 +647,7 @@ class _GalleryGroup(click.Group):
 @click.pass_context
 def gallery(ctx, store, server, api_key):
     """Look after the gallery store STORE (or the gallery service --server URL): list, remove ID, stats."""
-    if bool(store) == bool(server):
+    if bool(store) == bool(server) and not ctx.meta.get("facerec3d.help"):
         raise click.UsageError("give the gallery store STORE or --server URL" + (", not both" if store else "."))
     ctx.obj = store
     ctx.meta["facerec3d.server"] = (server, api_key)
@@ -775,7 +815,7 @@ def gallery_rekey(store, new_key_file):
 @click.option("--init", "init", type=click.Path(exists=True, dir_okay=False),
               help="Start from a model's weights (MODEL.weights.npz, written beside every model).")
 @_CACHE_OPTION
-@click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores",
+@click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", type=click.IntRange(min=1),
               help="Processes making the training faces; torch trains on as many threads.")
 @friendly
 def train_embedding(out, identities, scans, sensors, identity_profiles, epochs, width, seed, data_seed, max_yaw,
@@ -975,6 +1015,9 @@ def compare(runs, out):
 
     result = compare_runs(list(runs), out)
     for t in result["mcnemar"]:
+        if not t["n"]:
+            click.echo(f"rank-1: {t['a']} and {t['b']} share no probe (runs on other data): no McNemar test")
+            continue
         verdict = "differ" if t["differ"] else "do not differ significantly"
         click.echo(f"rank-1, McNemar on {t['n']} probes: {t['a']} and {t['b']} {verdict} (p = {t['p']:.3g}; "
                    f"{t['a_only']} vs {t['b_only']} discordant hits)")
@@ -1048,12 +1091,12 @@ def fuse(scores, out, fmt, normalisation, rule, weights, top, overwrite):
 
 
 @main.command()
-@click.option("--subjects", default=30, show_default=True)
+@click.option("--subjects", default=30, show_default=True, type=click.IntRange(min=2))
 @click.option("--scans", default=4, show_default=True, help="Scans per subject: neutral gallery, neutral, expression, ±25° yaw.")
 @click.option("--methods", default="icp,region-icp,lda", show_default=True,
               help="Comma-separated methods to evaluate and compare (learnt ones get a disjoint training set).")
 @click.option("--out", "out", default="demo-out", show_default=True, type=click.Path(file_okay=False))
-@click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores")
+@click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", type=click.IntRange(min=1))
 @click.option("--seed", default=0, show_default=True)
 @friendly
 def demo(subjects, scans, methods, out, jobs, seed):

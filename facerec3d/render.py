@@ -32,6 +32,22 @@ def _landmark_pixels(scan: FaceScan) -> dict[str, tuple[int, int]]:
     return {k: tuple(scan.grid[tree.query(v)[1]]) for k, v in scan.landmarks.items()}
 
 
+def check_image_path(path: str | Path) -> None:
+    """InputError unless `path` names an image format matplotlib writes (by its suffix) in an existing folder."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    from facerec3d.errors import InputError
+
+    path = Path(path)
+    formats = FigureCanvasBase.get_supported_filetypes()
+    suffix = path.suffix.lower().lstrip(".")
+    if suffix not in formats:
+        raise InputError(f"{path}: cannot write a {suffix or 'suffix-less'} image (use .png, or one of "
+                         f"{', '.join(sorted(formats))})")
+    if not path.parent.is_dir():
+        raise InputError(f"{path}: no such folder {path.parent}")
+
+
 def render(panels: list[tuple[str, FaceScan]], path: str | Path) -> None:
     """Write a PNG with one shaded panel per (title, grid scan), landmarks marked."""
     import matplotlib

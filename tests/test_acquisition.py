@@ -187,6 +187,15 @@ def test_depth_frames_through_the_cli_record_quality_and_pose_subsets(tmp_path):
     assert m["subsets"]["pose:front"]["n_probes"] == 2 and m["subsets"]["pose:left"]["n_probes"] == 2
     assert len(m["scan_quality"]) == 6 and m["quality_median"]["depth_step_mm"] == pytest.approx(8.0)
 
+    # a probe that fails to acquire: the console gives the figure that counts it as a miss, beside rank-1 of the rest
+    (tmp_path / "with-wall.csv").write_text((tmp_path / "manifest.csv").read_text() + "wall.png,s0,front,probe\n")
+    r = runner.invoke(main, ["evaluate", str(tmp_path / "with-wall.csv"), "--out", str(tmp_path / "run2"), "--jobs",
+                             "1", "--cache", str(tmp_path / "cache"), "--bootstrap", "0"])
+    assert r.exit_code == 0, r.output
+    m = json.loads((tmp_path / "run2" / "metrics.json").read_text())
+    assert m["failures"] == 1 and m["rank1_all"] < m["rank1"]
+    assert f"counted as misses: {100 * m['rank1_all']:.2f}%" in r.output, r.output
+
 
 def test_icp_thresholds_follow_the_source_sampling_and_the_template_stays_small():
     """A face resampled from a coarse source (3.4 mm pixels, 8 mm depth steps, recorded in its quality) gets ICP

@@ -116,3 +116,37 @@ def test_a_gallery_of_one_scan_per_person_calibrates_on_impostors_alone(kinect, 
         _, impostor, _ = calibration_scores(store, gallery_records(store), engine=engine)
     assert record["genuine_pairs"] == 0 and record["impostor_pairs"] == impostor.size == 20
     assert record["value"] == threshold_at_fmr(impostor, 0.05) and record["fmr"] <= 0.05
+
+
+def test_enrolling_more_keeps_a_threshold_calibrated_on_scans_given_for_it(kinect, gallery, tmp_path):
+    """A user's deliberate calibration (`gallery G calibrate SCANS`) is not replaced behind their back by the
+    self-calibration that `enroll` runs after adding a face; a self-calibrated threshold still follows the gallery."""
+    import shutil
+
+    g = tmp_path / "g.sqlite"
+    shutil.copy(gallery, g)
+    run = CliRunner().invoke(main, ["gallery", str(g), "calibrate", str(kinect), "--eer", "--jobs", "1"])
+    assert run.exit_code == 0, run.output
+    with GalleryStore(g) as store:
+        chosen = store.threshold()
+    assert chosen["data"] == "calibration scans"
+    more = tmp_path / "more"
+    write_dataset(more, DatasetConfig(subjects=1, scans=1, first_subject=50, scanner=sensor_profile("kinect-v2-8bit"),
+                                      seed=9))
+    run = CliRunner().invoke(main, ["enroll", str(more), "--gallery", str(g), "--method", "icp", "--jobs", "1"])
+    assert run.exit_code == 0 and "1 enrolled" in run.output, run.output
+    assert "kept the verification threshold" in run.output
+    with GalleryStore(g) as store:
+        assert store.threshold() == chosen
+    # a gallery whose threshold came from its own scans is calibrated again when it grows
+    own = tmp_path / "own.sqlite"
+    shutil.copy(gallery, own)
+    with GalleryStore(own) as store, Engine.create(1) as engine:
+        calibrate(store, None, fmr=0.01, engine=engine)
+        before = store.threshold()
+    assert before["data"] == "the gallery's own scans"
+    # (and enrolling into an existing gallery without --method takes the gallery's own, icp, not the default fusion)
+    run = CliRunner().invoke(main, ["enroll", str(more), "--gallery", str(own), "--jobs", "1"])
+    assert run.exit_code == 0 and "recorded in" in run.output, run.output
+    with GalleryStore(own) as store:
+        assert store.threshold()["entries"] == before["entries"] + 1

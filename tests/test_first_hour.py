@@ -178,7 +178,7 @@ def test_info_lays_out_errors_as_every_command_does(tmp_path, frames):
     r = CliRunner().invoke(main, ["info", str(rgba), str(empty), str(frames / "04200" / "front_1.png")])
     assert r.exit_code == 2
     lines = r.output.splitlines()
-    assert lines[0] == f"error: {rgba}: not a depth image: Pillow mode RGBA (need 16-bit grey)"
+    assert lines[0] == f"error: {rgba}: not a depth image: Pillow mode RGBA (need a grey depth image: 16-bit, 8-bit or float)"
     assert lines[1].startswith(f"error: {empty}: ") and "intrinsics" not in lines[1]
     assert lines[2].startswith(f"{frames / '04200' / 'front_1.png'}: 212x256 grid")
 
@@ -284,3 +284,87 @@ def test_a_manifest_of_bosphorus_files_is_read_as_the_bosphorus_folder_would_be(
     assert {k: len(v) for k, v in through_manifest.subsets.items() if not k.startswith("pose:")} == \
         {k: len(v) for k, v in folder.subsets.items()}
     assert len(through_manifest.subsets) > 3  # neutral, non-neutral and the Bosphorus types
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# A second new user's hour (2026-12-03): frames named after their pose, not their person; options and outputs.
+
+def test_frames_given_one_by_one_take_their_subject_from_the_manifest_above_them(frames, tmp_path):
+    """`enroll frames/04200/front_1.png frames/04201/front_1.png` made two people one subject, "front_1" (and a
+    calibration on such frames counted no genuine pair): the manifest.csv above the frames says whose each is;
+    without one, same-named files from different folders are refused instead of merged."""
+    from facerec3d.datasets.catalog import DatasetError
+    from facerec3d.gallery.service import scan_records
+
+    files = [frames / s / "front_1.png" for s in ("04200", "04201")]
+    records = scan_records(files)
+    assert [r.subject for r in records] == ["04200", "04201"]
+    assert [r.path for r in records] == files
+    bare = tmp_path / "bare"  # the same frames without a manifest
+    for s in ("04200", "04201"):
+        (bare / s).mkdir(parents=True)
+        (bare / s / "front_1.png").write_bytes((frames / s / "front_1.png").read_bytes())
+    with pytest.raises(DatasetError, match="--subject"):
+        scan_records([bare / s / "front_1.png" for s in ("04200", "04201")])
+    assert [r.subject for r in scan_records([bare / "04200" / "front_1.png"])] == ["front_1"]  # one file: its stem
+    assert [r.subject for r in scan_records([bare / s / "front_1.png" for s in ("04200", "04201")], "x")] == ["x", "x"]
+    r = CliRunner().invoke(main, ["enroll", *map(str, [bare / s / "front_1.png" for s in ("04200", "04201")]),
+                                  "--gallery", str(tmp_path / "g.sqlite"), "--jobs", "1"])
+    assert r.exit_code == 2 and r.output.startswith("error: 2 scans named 'front_1'"), r.output
+    assert not (tmp_path / "g.sqlite").exists()
+
+
+def test_view_refuses_an_image_it_cannot_write_before_any_work(frames, tmp_path):
+    scan = str(frames / "04200" / "front_1.png")
+    for out, reason in ((tmp_path / "x.txt", "cannot write a txt image"), (tmp_path / "no" / "x.png", "no such folder")):
+        r = CliRunner().invoke(main, ["view", scan, "-o", str(out)])
+        assert r.exit_code == 2 and r.output.strip().splitlines() == [r.output.strip()], r.output
+        assert r.output.startswith(f"error: {out}: {reason}"), r.output
+
+
+def test_a_missing_output_folder_is_named_not_an_errno(frames, tmp_path):
+    out = tmp_path / "no" / "x.ply"
+    r = CliRunner().invoke(main, ["convert", str(frames / "04200" / "front_1.png"), str(out)])
+    assert r.exit_code == 2 and r.output.strip() == f"error: {out}: no such file or directory", r.output
+
+
+def test_counts_and_sizes_below_one_are_usage_errors(tmp_path, frames):
+    for args in (["synth", str(tmp_path / "s"), "--subjects", "0"], ["synth", str(tmp_path / "s"), "--scans", "-2"],
+                 ["identify", str(frames / "04200" / "front_1.png"), "--gallery", "g.sqlite", "-k", "0"],
+                 ["evaluate", str(frames), "--bootstrap", "-5", "--out", str(tmp_path / "e")],
+                 ["preprocess", str(frames / "04200" / "front_1.png"), "-o", str(tmp_path / "p"), "--jobs", "0"]):
+        r = CliRunner().invoke(main, args)
+        assert r.exit_code == 2 and "Invalid value" in r.output, (args, r.output)
+    assert not (tmp_path / "s").exists() and not (tmp_path / "e").exists()
+
+
+def test_fusing_score_files_that_share_nothing_is_an_error(tmp_path):
+    (tmp_path / "a.txt").write_text("s1 s1 p1 1.0\ns2 s1 p1 0.5\n")
+    (tmp_path / "b.txt").write_text("s3 s3 q1 1.0\ns4 s3 q1 0.5\n")
+    r = CliRunner().invoke(main, ["fuse", str(tmp_path / "a.txt"), str(tmp_path / "b.txt"), "--out",
+                                  str(tmp_path / "f.txt")])
+    assert r.exit_code == 2 and "shares no comparison" in r.output, r.output
+    assert not (tmp_path / "f.txt").exists()
+
+
+def test_a_gallery_commands_help_needs_no_store():
+    for command in ("list", "rekey", "calibrate"):
+        r = CliRunner().invoke(main, ["gallery", command, "--help"], prog_name="facerec3d")
+        assert r.exit_code == 0 and r.output.startswith(f"Usage: facerec3d gallery [STORE] {command}"), r.output
+    r = CliRunner().invoke(main, ["gallery", "list"])
+    assert r.exit_code == 2 and "give the gallery store STORE" in r.output
+
+
+def test_evaluate_refuses_a_model_with_another_method_and_warns_of_training_on_the_test_people(run, frames,
+                                                                                               tmp_path):
+    out, _ = run
+    model = tmp_path / "model.npz"
+    model.write_bytes(b"not read: refused before")
+    r = CliRunner().invoke(main, ["evaluate", str(frames), "--method", "icp", "--model", str(model), "--out",
+                                  str(tmp_path / "x")])
+    assert r.exit_code == 2 and "give --model or --method, not both" in r.output, r.output
+    r = CliRunner().invoke(main, ["evaluate", str(frames), "--method", "icp", "--train", str(frames), "--out",
+                                  str(tmp_path / "y"), "--jobs", "1", "--bootstrap", "0", "--cache",
+                                  str(out.parent / "cache")])
+    assert r.exit_code == 0, r.output
+    assert "warning: " in r.output and "3 of its subjects" in r.output and "flatters" in r.output

@@ -124,6 +124,25 @@ def scan_record(path: str | Path) -> ScanRecord | None:
     return None
 
 
+def manifest_record(path: str | Path, levels: int = 3) -> ScanRecord | None:
+    """The record of a scan file that a `manifest.csv` in its folder or in one of the `levels` folders above it
+    lists (a `facerec3d synth --format png` or rap3df-style `<subject>/<frame>.png` layout: the frame's name does
+    not say whose it is, its manifest does); None when no readable manifest lists it."""
+    target = Path(path).resolve()
+    for folder in list(target.parents)[:levels + 1]:
+        manifest = folder / "manifest.csv"
+        if not manifest.is_file():
+            continue
+        try:
+            records = read_manifest(manifest).records
+        except DatasetError:
+            continue
+        for record in records:
+            if record.path.resolve() == target:
+                return record
+    return None
+
+
 def _frgc_session(path: Path) -> str | None:
     """The FRGC session folder (`Fall2003range`, ...) a file is in, or None."""
     return next((part for part in path.parts if part in FRGC_SESSIONS), None)

@@ -211,7 +211,7 @@ def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str =
                      top: int = 0) -> tuple[ScoreMatrix, int]:
     """Score-level fusion of several systems' score files (chapter §8.10; `matching.normalisation.fuse`, what the
     `fusion` method computes from its members' scores): each probe's scores of each file normalised over the
-    gallery templates it was compared with, then combined by `rule`. Probes are matched by label, templates by
+    gallery templates it was compared with, then combined by `rule` (InputError when the files share none). Probes are matched by label, templates by
     (subject, label). Returns the fused matrix and the number of comparisons left out because some file lacks them
     (a comparison is fused only where every file has it; a score of −inf, a match not found, counts as that
     probe's worst). Raises InputError naming the file when the files disagree on a probe's subject."""
@@ -241,6 +241,9 @@ def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str =
         keep_r, keep_c = rows >= 0, cols >= 0
         stack[k][np.ix_(rows[keep_r], cols[keep_c])] = m.S[np.ix_(keep_r, keep_c)]
     made = ~np.isnan(stack).any(axis=0)
+    if not made.any():
+        raise InputError(f"{paths[1]}: shares no comparison with {paths[0]} (other probes or gallery faces): "
+                         "nothing to fuse")
     fused = np.full(made.shape, np.nan)
     for i in np.flatnonzero(made.any(axis=1)):
         cols = np.flatnonzero(made[i])

@@ -16,7 +16,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from facerec3d.datasets.catalog import ScanRecord, open_dataset, scan_record
+from facerec3d.datasets.catalog import DatasetError, ScanRecord, manifest_record, open_dataset, scan_record
 from facerec3d.datasets.protocols import split
 from facerec3d.gallery.cascade import CascadeConfig
 from facerec3d.gallery.engine import Engine
@@ -56,16 +56,25 @@ def scan_records(data: Iterable[str | Path], subject: str | None = None,
                  gallery_only: bool = False) -> list[ScanRecord]:
     """The scans of DATA arguments: dataset folders and manifest CSVs (all their scans, or with `gallery_only` the
     gallery of their protocol), and scan files (subject from a FRGC or Bosphorus name, else `subject`, else
-    the file's stem)."""
+    the manifest.csv of the file's folder or one above it that lists it, else the file's stem). Files in different
+    folders whose subjects would all be the same stem (`a/front_1.png`, `b/front_1.png`: two people made one) are
+    refused with a DatasetError that says how to name them."""
     out: list[ScanRecord] = []
+    from_stem: dict[str, set[Path]] = {}
     for item in map(Path, data):
         if item.is_dir() or _is_manifest(item):
             dataset = open_dataset(item)
             chosen = split(dataset, None).gallery if gallery_only else range(len(dataset))
             out += [dataset.records[i] for i in chosen]
         else:
-            named = None if subject is not None else scan_record(item)
+            named = None if subject is not None else scan_record(item) or manifest_record(item)
+            if named is None and subject is None:
+                from_stem.setdefault(scan_stem(item), set()).add(item.resolve().parent)
             out.append(named or ScanRecord(item, subject or scan_stem(item), scan_stem(item)))
+    for stem, folders in from_stem.items():
+        if len(folders) > 1:
+            raise DatasetError(f"{len(folders)} scans named {stem!r} in different folders would all be subject "
+                               f"{stem!r}: give --subject, or a manifest.csv (path,subject) beside or above them")
     return out
 
 

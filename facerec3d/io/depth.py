@@ -170,7 +170,7 @@ def _read_pixels(path: str | Path) -> np.ndarray:
                 if w * h > MAX_POINTS:
                     raise ScanFormatError(path, f"absurd size {h}x{w} for a depth frame (over {MAX_POINTS} pixels)")
                 if im.mode not in ("I;16", "I;16B", "I;16L", "I", "L", "F"):
-                    raise ScanFormatError(path, f"not a depth image: Pillow mode {im.mode} (need 16-bit grey)")
+                    raise ScanFormatError(path, f"not a depth image: Pillow mode {im.mode} (need a grey depth image: 16-bit, 8-bit or float)")
                 a = np.asarray(im)
     if a.ndim != 2:
         raise ScanFormatError(path, f"a depth image must be 2-D, not of shape {a.shape}")
@@ -190,7 +190,8 @@ def read_depth_image(path: str | Path, intrinsics: Intrinsics | str | Path | Non
         found = find_intrinsics(path)
         if found is None:
             raise ScanFormatError(path, f"a depth image needs pinhole intrinsics: put an {INTRINSICS_NAME} "
-                                        "(fx, fy, cx, cy in pixels) beside it or in a parent folder, or give --intrinsics")
+                                        "(fx, fy, cx, cy in pixels) beside it or in a parent folder (preprocess "
+                                        "and evaluate also take --intrinsics)")
         intrinsics = found
     if not isinstance(intrinsics, Intrinsics):
         try:
