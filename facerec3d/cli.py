@@ -121,7 +121,8 @@ def convert(src, dst):
               help="Faces from the morphable model, or beyond it: wider identities, a non-linear deformation and "
               "occluders (hair fringe, glasses, hand); outside-model-unoccluded: the same faces without the occluders.")
 @click.option("--rows", type=click.IntRange(min=16), help="Range image rows (default: the sensor's).")
-@click.option("--cols", type=click.IntRange(min=16), help="Range image columns (default: the sensor's; the focal length scales with it).")
+@click.option("--cols", type=click.IntRange(min=16),
+              help="Range image columns (default: the sensor's; the focal length scales with it).")
 @friendly
 def synth(out, subjects, scans, fmt, seed, first_subject, expressions, expression_strength, sensor, identities, rows,
           cols):
@@ -424,14 +425,13 @@ def _bootstrap_options(fn):
 def evaluate(data, method, method_config, train, model, out, overwrite, protocol, config_file, cache, intrinsics,
              cascade, shortlist, screen, bootstrap, seed, jobs, scheduler):
     """Evaluate a method on DATA (FRGC or Bosphorus folder, or manifest CSV): metrics, scores, plots, report."""
-    from facerec3d.config import read_settings
-    from facerec3d.evaluation.run import evaluate as run
-    from facerec3d.preprocess import PreprocessConfig
-
     from click.core import ParameterSource
 
+    from facerec3d.config import read_settings
     from facerec3d.datasets.catalog import open_dataset
     from facerec3d.errors import InputError
+    from facerec3d.evaluation.run import evaluate as run
+    from facerec3d.preprocess import PreprocessConfig
 
     if model and click.get_current_context().get_parameter_source("method") is ParameterSource.COMMANDLINE:
         raise InputError(f"{model}: a saved model brings its own method: give --model or --method, not both")

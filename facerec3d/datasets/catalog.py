@@ -21,6 +21,7 @@ from __future__ import annotations
 import csv
 import re
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 from facerec3d.errors import FaceRec3DError
@@ -131,16 +132,19 @@ def manifest_record(path: str | Path, levels: int = 3) -> ScanRecord | None:
     target = Path(path).resolve()
     for folder in list(target.parents)[:levels + 1]:
         manifest = folder / "manifest.csv"
-        if not manifest.is_file():
-            continue
-        try:
-            records = read_manifest(manifest).records
-        except DatasetError:
-            continue
-        for record in records:
-            if record.path.resolve() == target:
-                return record
+        if manifest.is_file() and (record := _manifest_index(str(manifest), manifest.stat().st_mtime_ns).get(target)):
+            return record
     return None
+
+
+@lru_cache(maxsize=8)
+def _manifest_index(manifest: str, mtime_ns: int) -> dict[Path, ScanRecord]:
+    """A manifest's records by their resolved paths (read once per version of the file: enrolling a folder's frames
+    one by one asks for each); empty when the manifest cannot be read."""
+    try:
+        return {r.path.resolve(): r for r in read_manifest(manifest).records}
+    except DatasetError:
+        return {}
 
 
 def _frgc_session(path: Path) -> str | None:

@@ -211,8 +211,8 @@ def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str =
                      top: int = 0) -> tuple[ScoreMatrix, int]:
     """Score-level fusion of several systems' score files (chapter §8.10; `matching.normalisation.fuse`, what the
     `fusion` method computes from its members' scores): each probe's scores of each file normalised over the
-    gallery templates it was compared with, then combined by `rule` (InputError when the files share none). Probes are matched by label, templates by
-    (subject, label). Returns the fused matrix and the number of comparisons left out because some file lacks them
+    gallery templates it was compared with, then combined by `rule` (InputError when the files share none). Probes
+    are matched by label, templates by (subject, label). Returns the fused matrix and the number of comparisons left out because some file lacks them
     (a comparison is fused only where every file has it; a score of −inf, a match not found, counts as that
     probe's worst). Raises InputError naming the file when the files disagree on a probe's subject."""
     from facerec3d.matching.normalisation import check_fusion, fuse

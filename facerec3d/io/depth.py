@@ -170,7 +170,8 @@ def _read_pixels(path: str | Path) -> np.ndarray:
                 if w * h > MAX_POINTS:
                     raise ScanFormatError(path, f"absurd size {h}x{w} for a depth frame (over {MAX_POINTS} pixels)")
                 if im.mode not in ("I;16", "I;16B", "I;16L", "I", "L", "F"):
-                    raise ScanFormatError(path, f"not a depth image: Pillow mode {im.mode} (need a grey depth image: 16-bit, 8-bit or float)")
+                    raise ScanFormatError(path, f"not a depth image: Pillow mode {im.mode} (need a grey depth "
+                                                "image: 16-bit, 8-bit or float)")
                 a = np.asarray(im)
     if a.ndim != 2:
         raise ScanFormatError(path, f"a depth image must be 2-D, not of shape {a.shape}")
