@@ -368,3 +368,14 @@ def test_evaluate_refuses_a_model_with_another_method_and_warns_of_training_on_t
                                   str(out.parent / "cache")])
     assert r.exit_code == 0, r.output
     assert "warning: " in r.output and "3 of its subjects" in r.output and "flatters" in r.output
+
+
+def test_reading_an_empty_file_as_a_gallery_leaves_it_empty(tmp_path):
+    """`gallery e.sqlite list` on a 0-byte file made it a 57 KB store and listed nothing, exit 0."""
+    empty = tmp_path / "e.sqlite"
+    empty.write_bytes(b"")
+    for command in ("list", "stats"):
+        r = CliRunner().invoke(main, ["gallery", str(empty), command])
+        assert r.exit_code == 2 and r.output.strip() == f"error: {empty}: an empty file, not a gallery (enrol into it "\
+                                                        "first)", r.output
+    assert empty.stat().st_size == 0

@@ -224,6 +224,8 @@ class GalleryStore:
         self.path = Path(path)
         if not self.path.is_file() and not create:
             raise GalleryError(f"{self.path}: no such gallery (enrol into it first)")
+        if not create and not self.path.stat().st_size:  # an empty file: not a store, and not made one by a reader
+            raise GalleryError(f"{self.path}: an empty file, not a gallery (enrol into it first)")
         self.key = key if key is not None else TemplateKey.from_environment()
         if not self.path.exists():
             try:  # made here, so that SQLite's files take this mode: templates are for the owner only
