@@ -509,8 +509,10 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
             total = store.stats()["entries"]
         if calibrate and report.enrolled:
             with GalleryStore(gallery) as store:
+                from facerec3d.evaluation.calibrate import OWN_SCANS
+
                 kept = store.threshold()
-                if kept is not None and kept.get("data") != "the gallery's own scans":
+                if kept is not None and kept.get("data") != OWN_SCANS:
                     # a threshold calibrated on scans given for it is the user's choice: not replaced behind them
                     click.echo(f"kept the verification threshold {kept['value']:.4g} calibrated on {kept['data']} "
                                f"(recalibrate: facerec3d gallery {gallery} calibrate ...)")

@@ -9,7 +9,8 @@ from click.testing import CliRunner
 
 from facerec3d.cli import main
 from facerec3d.datasets.synthetic import DatasetConfig, sensor_profile, write_dataset
-from facerec3d.evaluation.calibrate import calibrate, calibration_scores, gallery_records, threshold_at_fmr
+from facerec3d.evaluation.calibrate import (OWN_SCANS, calibrate, calibration_scores, gallery_records,
+                                            threshold_at_fmr)
 from facerec3d.evaluation.metrics import eer, roc
 from facerec3d.gallery.engine import Engine
 from facerec3d.gallery.service import DEFAULT_THRESHOLDS, enroll_scans, gallery_threshold, scan_records, verify_scan
@@ -144,7 +145,7 @@ def test_enrolling_more_keeps_a_threshold_calibrated_on_scans_given_for_it(kinec
     with GalleryStore(own) as store, Engine.create(1) as engine:
         calibrate(store, None, fmr=0.01, engine=engine)
         before = store.threshold()
-    assert before["data"] == "the gallery's own scans"
+    assert before["data"] == OWN_SCANS
     # (and enrolling into an existing gallery without --method takes the gallery's own, icp, not the default fusion)
     run = CliRunner().invoke(main, ["enroll", str(more), "--gallery", str(own), "--jobs", "1"])
     assert run.exit_code == 0 and "recorded in" in run.output, run.output

@@ -28,6 +28,7 @@ from facerec3d.gallery.store import GalleryError, GalleryStore
 from facerec3d.evaluation.metrics import _eer, roc
 
 DEFAULT_FMR = 0.01  # the false-match rate the recorded threshold keeps (1 %: one impostor in a hundred accepted)
+OWN_SCANS = "the gallery's own scans"  # a threshold record's "data" when calibrated on the gallery itself (enroll's)
 MAX_SCANS = 100  # calibration scans scored against the gallery at the most (an even selection of them)
 
 
@@ -121,7 +122,7 @@ def calibrate(store: GalleryStore, records: Sequence[ScanRecord] | None = None, 
     record = {"value": value, "rule": rule,
               "fmr": float(np.mean(impostor >= value)), "impostor_pairs": int(impostor.size),
               "genuine_pairs": int(genuine.size), "scans": min(len(records), max_scans), "failed_scans": failed,
-              "data": "the gallery's own scans" if own else "calibration scans", "entries": len(store.entries()),
+              "data": OWN_SCANS if own else "calibration scans", "entries": len(store.entries()),
               "calibrated_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     if genuine.size:
         record["tar"] = float(np.mean(genuine >= value))
