@@ -144,6 +144,15 @@ def test_sampling_is_measured_from_the_scan():
     assert measure_sampling(fine).noise_mm == pytest.approx(1.0, rel=0.35)
 
 
+def test_depth_steps_are_found_through_float_round_off():
+    """Quantised depth that picked up sub-micron noise on the way (float round-off, a unit conversion) still has
+    its steps: with exact equality as the test, 0.0001 mm of jitter made 8 mm steps read as continuous depth."""
+    scan, _ = kinect_face(0, step=8.0)
+    jitter = np.random.default_rng(0).uniform(-1e-4, 1e-4, len(scan.points))
+    moved = scan.replace(points=scan.points + np.c_[np.zeros((len(jitter), 2)), jitter])
+    assert measure_sampling(moved).depth_step_mm == pytest.approx(8.0, abs=0.01)
+
+
 def test_depth_frames_through_the_cli_record_quality_and_pose_subsets(tmp_path):
     """Kinect-like frames as 16-bit PNGs with intrinsics.json and a manifest with a pose column: `preprocess`
     writes each scan's measured quality to landmarks.csv, `evaluate` reports pose subsets and scan quality."""

@@ -9,9 +9,11 @@ Kinect frame whose depth comes in 4–8 mm steps.
   (`FaceScan.resolution`), measured on the face once it is found;
 * depth step: range images of consumer cameras store depth in integer units,
   often coarse ones (an 8-bit capture of a Kinect v2 keeps 4 or 8 mm steps).
-  Neighbouring pixels on a smooth surface then have exactly equal depth, or
-  depths one step apart: when most neighbour differences are exactly zero
-  the step is the median of the others; else the depth is continuous (0);
+  Neighbouring pixels on a smooth surface then have equal depth, or depths
+  one step apart: when most neighbour differences are zero (within
+  `ZERO_SHARE_OF_PITCH` of the pitch, so float round-off or a sub-micron
+  jitter added on the way does not hide the steps) the step is the median of
+  the others; else the depth is continuous (0);
 * noise: for quantised depth the quantisation's σ = step/√12; else σ of depth noise from the second differences of depth along rows and
   columns (σ = 1.4826·MAD / √6 of z[i−1] − 2 z[i] + z[i+1], which a smooth
   surface sampled finely keeps near zero).
@@ -49,6 +51,10 @@ def _z_image(scan: FaceScan) -> np.ndarray:
     return np.where(valid, xyz[..., 2], np.nan)
 
 
+ZERO_SHARE_OF_PITCH = 0.002  # neighbour depths closer than this × pitch count as equal (0.007 mm at a Kinect's
+#                             3.5 mm, 0.0014 mm at a laser's 0.7 mm: far below any sensor's noise or step)
+
+
 def depth_step(scan: FaceScan, min_zero_share: float = 0.3, pitch: float | None = None) -> float:
     """The depth quantisation step (mm) of a grid scan; 0 when depth is continuous (see the module docstring).
     `pitch`: the scan's resolution when already known."""
@@ -61,7 +67,7 @@ def depth_step(scan: FaceScan, min_zero_share: float = 0.3, pitch: float | None 
         return 0.0
     pitch = scan.resolution() if pitch is None else pitch
     d = d[d <= 3.0 * pitch + 1e-9] if np.isfinite(pitch) else d  # same surface, not across an edge
-    zero = d <= 1e-6
+    zero = d <= max(1e-6, ZERO_SHARE_OF_PITCH * pitch) if np.isfinite(pitch) else d <= 1e-6
     if zero.mean() < min_zero_share or zero.all():
         return 0.0
     return float(np.median(d[~zero]))
