@@ -174,7 +174,7 @@ LANDMARK_COLUMNS = ("nose_tip", "nose_bridge", "left_eye_inner", "right_eye_inne
 
 
 @main.command()
-@click.argument("inputs", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.argument("inputs", nargs=-1, required=True, type=click.Path())
 @click.option("-o", "--out", "outdir", required=True, type=click.Path(file_okay=False))
 @click.option("--config", "config_file", type=click.Path(dir_okay=False), help="TOML or JSON preprocessing settings.")
 @click.option("--format", "fmt", type=click.Choice(["npz", "ply"]), default="npz", show_default=True)
@@ -184,17 +184,20 @@ LANDMARK_COLUMNS = ("nose_tip", "nose_bridge", "left_eye_inner", "right_eye_inne
               help="Depth frames: pinhole intrinsics JSON (fx, fy, cx, cy); default: an intrinsics.json beside them.")
 @friendly
 def preprocess(inputs, outdir, config_file, fmt, jobs, intrinsics):
-    """Preprocess scans INPUTS into normalised faces in OUT, with OUT/landmarks.csv (chapter §8.5). Outputs are
-    named after the inputs; when files of several folders share a name, after folder and file (s000/front_1.png
-    gives s000_front_1.npz). Exit code 1 when no scan could be used."""
+    """Preprocess scans INPUTS (files, dataset folders or manifests, as for enroll) into normalised faces in OUT,
+    with OUT/landmarks.csv (chapter §8.5). Outputs are named after the inputs; when files of several folders share
+    a name, after folder and file (s000/front_1.png gives s000_front_1.npz). Exit code 1 when no scan could be
+    used."""
     from tqdm import tqdm
 
+    from facerec3d.gallery.service import scan_paths
     from facerec3d.io import save_scan, unique_stems
     from facerec3d.preprocess import PreprocessConfig, landmarks_in_input_frame
     from facerec3d.preprocess.batch import preprocess_files
     from facerec3d.preprocess.pipeline import QUALITY_FIELDS, scan_quality
 
     config = PreprocessConfig.load(config_file) if config_file else PreprocessConfig()
+    inputs = scan_paths(inputs)
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
     header = (["scan", "status", "output"] + [f"{n}_{'xyz'[k]}" for n in LANDMARK_COLUMNS for k in range(3)]

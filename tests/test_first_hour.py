@@ -120,6 +120,21 @@ def test_preprocess_names_outputs_after_the_person(frames, tmp_path):
     assert sorted(p.name for p in (tmp_path / "faces").glob("*.npz")) == ["04200_front_1.npz", "04201_front_1.npz"]
 
 
+@pytest.mark.parametrize("given", ["folder", "manifest"])
+def test_preprocess_takes_a_folder_or_a_manifest_as_enroll_does(frames, tmp_path, given):
+    """A dataset folder or its manifest.csv gives all the scans it lists, named as files given one by one are."""
+    data = tmp_path / "data"
+    data.mkdir()
+    rows = [f"{frames / s / 'front_1.png'},{s}" for s in ("04200", "04201")]
+    (data / "manifest.csv").write_text("path,subject\n" + "\n".join(rows) + "\n")
+    source = data if given == "folder" else data / "manifest.csv"
+    r = CliRunner().invoke(main, ["preprocess", str(source), "-o", str(tmp_path / "faces"), "--jobs", "1"])
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in (tmp_path / "faces").glob("*.npz")) == ["04200_front_1.npz", "04201_front_1.npz"]
+    with open(tmp_path / "faces" / "landmarks.csv") as f:
+        assert [row["scan"] for row in csv.DictReader(f)] == [str(frames / s / "front_1.png") for s in ("04200", "04201")]
+
+
 def test_the_cache_says_where_it_is_and_can_be_listed_and_cleared(frames, tmp_path, monkeypatch):
     from facerec3d.preprocess import batch
 
