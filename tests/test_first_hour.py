@@ -135,6 +135,27 @@ def test_preprocess_takes_a_folder_or_a_manifest_as_enroll_does(frames, tmp_path
         assert [row["scan"] for row in csv.DictReader(f)] == [str(frames / s / "front_1.png") for s in ("04200", "04201")]
 
 
+def test_preprocess_into_an_earlier_output_is_refused_without_overwrite(frames, tmp_path):
+    """landmarks.csv lists exactly the faces in OUT: a second preprocess into it is refused (nothing touched);
+    with --overwrite the earlier faces and landmarks.csv go, other files stay."""
+    faces = tmp_path / "faces"
+    first = ["preprocess", str(frames / "04200" / "front_1.png"), "-o", str(faces), "--jobs", "1"]
+    assert CliRunner().invoke(main, first).exit_code == 0
+    (faces / "notes.txt").write_text("mine")
+    before = (faces / "landmarks.csv").read_text()
+    again = ["preprocess", str(frames / "04201" / "front_1.png"), "-o", str(faces), "--jobs", "1", "--format", "ply"]
+    r = CliRunner().invoke(main, again)
+    assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
+    assert r.output.startswith(f"error: {faces}: holds a preprocess output already (landmarks.csv, front_1.npz)")
+    assert "--overwrite" in r.output
+    assert (faces / "landmarks.csv").read_text() == before and (faces / "front_1.npz").is_file()
+    r = CliRunner().invoke(main, again + ["--overwrite"])
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in faces.iterdir()) == ["front_1.ply", "landmarks.csv", "notes.txt"]
+    with open(faces / "landmarks.csv") as f:
+        assert [row["output"] for row in csv.DictReader(f)] == [str(faces / "front_1.ply")]
+
+
 def test_the_cache_says_where_it_is_and_can_be_listed_and_cleared(frames, tmp_path, monkeypatch):
     from facerec3d.preprocess import batch
 
