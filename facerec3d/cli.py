@@ -1026,13 +1026,15 @@ def cache_clear(folder):
 @main.command()
 @click.argument("runs", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False))
 @click.option("--out", "out", default="compare", show_default=True, type=click.Path(file_okay=False))
+@click.option("--overwrite", is_flag=True, help="Replace the comparison already in --out (its files are removed "
+              "first); without it such a folder is refused.")
 @friendly
-def compare(runs, out):
+def compare(runs, out, overwrite):
     """Overlay several evaluation runs' ROC, DET and CMC curves, tabulate their figures with 95% intervals, and
     test each pair's rank-1 on the same probes (McNemar)."""
     from facerec3d.evaluation.compare import compare_runs
 
-    result = compare_runs(list(runs), out)
+    result = compare_runs(list(runs), out, overwrite)
     for t in result["mcnemar"]:
         if not t["n"]:
             click.echo(f"rank-1: {t['a']} and {t['b']} share no probe (runs on other data): no McNemar test")
@@ -1156,7 +1158,7 @@ def demo(subjects, scans, methods, out, jobs, seed):
         m = run(out / "data", name, out / name, jobs=jobs, cache=out / "cache",
                 train=out / "train" if name in learnt else None, overwrite=True)  # its own runs: made again
         _print_metrics(m)
-    compare_runs([out / name for name in names], out / "compare")
+    compare_runs([out / name for name in names], out / "compare", overwrite=True)  # its own comparison
     click.echo(f"\nreports: {out / 'compare' / 'compare.html'} (all methods), {out}/<method>/report.html")
 
 

@@ -103,6 +103,24 @@ def test_a_run_folder_is_not_overwritten_without_overwrite(run, frames, tmp_path
     assert (folder / "notes.txt").read_text() == "mine"
 
 
+def test_a_comparison_is_not_overwritten_without_overwrite(run, tmp_path):
+    """As evaluate's run folder: refused with one line naming --overwrite (nothing touched); with it, the old
+    comparison's files go, others stay."""
+    out, _ = run
+    folder = tmp_path / "cmp"
+    args = ["compare", str(out), "--out", str(folder)]
+    assert CliRunner().invoke(main, args).exit_code == 0
+    (folder / "compare.md").write_text("an older comparison")
+    (folder / "notes.txt").write_text("mine")
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
+    assert r.output.startswith(f"error: {folder}: holds a comparison already (") and "--overwrite" in r.output
+    assert (folder / "compare.md").read_text() == "an older comparison"
+    r = CliRunner().invoke(main, args + ["--overwrite"])
+    assert r.exit_code == 0, r.output
+    assert "icp" in (folder / "compare.md").read_text() and (folder / "notes.txt").read_text() == "mine"
+
+
 def test_bosphorus_protocol_on_a_dataset_without_bosphorus_types_is_refused(frames, tmp_path):
     """Item 6."""
     r = CliRunner().invoke(main, ["evaluate", str(frames), "--protocol", "bosphorus", "--out", str(tmp_path / "b"),
