@@ -433,3 +433,22 @@ def test_reading_an_empty_file_as_a_gallery_leaves_it_empty(tmp_path):
         assert r.exit_code == 2 and r.output.strip() == f"error: {empty}: an empty file, not a gallery (enrol into it "\
                                                         "first)", r.output
     assert empty.stat().st_size == 0
+
+
+def test_serve_on_a_port_in_use_is_one_line_before_anything_starts(tmp_path):
+    """Not the banner and then uvicorn's error (exit 3): the address is checked before the gallery loads."""
+    import socket
+
+    pytest.importorskip("fastapi")
+    from facerec3d.server.keys import add_key
+
+    add_key(tmp_path / "keys.json", "alice", "query")
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        r = CliRunner().invoke(main, ["serve", "--gallery", str(tmp_path / "g.sqlite"), "--keys",
+                                      str(tmp_path / "keys.json"), "--port", str(port), "--jobs", "1"])
+    assert r.exit_code == 2, r.output
+    assert r.output == f"error: 127.0.0.1:{port}: address already in use\n"
+    assert not (tmp_path / "g.sqlite").exists()  # refused before the gallery was made
