@@ -3,6 +3,7 @@ repeat (as in rap3df-2019), evaluated and scored again; run folders; the protoco
 Ctrl-C; the error layout; messages; the service's intrinsics as a file part; the threshold hint."""
 
 import csv
+import gzip
 import json
 import re
 import subprocess
@@ -452,3 +453,46 @@ def test_serve_on_a_port_in_use_is_one_line_before_anything_starts(tmp_path):
     assert r.exit_code == 2, r.output
     assert r.output == f"error: 127.0.0.1:{port}: address already in use\n"
     assert not (tmp_path / "g.sqlite").exists()  # refused before the gallery was made
+
+
+def _ply(vertices: int, rows: int) -> bytes:
+    """A binary PLY whose header promises `vertices` (x, y, z floats) and that holds `rows` of them."""
+    head = (f"ply\nformat binary_little_endian 1.0\nelement vertex {vertices}\nproperty float x\nproperty float y\n"
+            "property float z\nend_header\n").encode()
+    return head + np.arange(3 * rows, dtype="<f4").tobytes()
+
+
+@pytest.mark.parametrize("name, content, reason", [
+    ("text.npz", b"an archive? no\n", "not a NumPy file: neither an .npy array nor an .npz archive"),
+    ("cut.ply", _ply(1000, 2), "truncated PLY: header promises 1000 vertices, the file holds fewer (bytes"),
+    ("cut.ply", _ply(100, 10), "truncated PLY: header promises 100 vertices, the file holds only 10"),
+    ("packed.xyz", gzip.compress(b"1.0 2.0 3.0\n" * 500, mtime=0), "not a text point file (gzip-compressed data"),
+    ("noise.xyz", bytes(range(256)) * 4, "not a text point file (binary data)"),
+], ids=["text-as-npz", "ply-short-of-its-size", "ply-short-of-rows", "gzip-as-xyz", "binary-as-xyz"])
+def test_messages_of_files_that_are_not_what_their_names_say(tmp_path, name, content, reason):
+    """Item 5: the reason in the user's words: no option they cannot set (NumPy's allow_pickle), no byte-string
+    reprs, no binary garbage quoted."""
+    path = tmp_path / name
+    path.write_bytes(content)
+    r = CliRunner().invoke(main, ["info", str(path)])
+    assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
+    expected = f"error: {path}: {reason}"
+    if reason.endswith("(bytes"):  # the size in bytes is said
+        expected = expected.removesuffix("(bytes") + f"({path.stat().st_size} bytes in all)"
+    assert r.output.startswith(expected), r.output
+    assert r.output[:-1].isprintable() and "\ufffd" not in r.output  # no binary data quoted
+
+
+def test_an_array_of_python_objects_is_refused_for_safety_not_loaded_unsafely(tmp_path):
+    np.save(tmp_path / "objects.npy", np.array([{"a": 1}, None], dtype=object), allow_pickle=True)
+    r = CliRunner().invoke(main, ["info", str(tmp_path / "objects.npy")])
+    assert r.exit_code == 2
+    assert r.output == f"error: {tmp_path / 'objects.npy'}: holds pickled Python objects, which are refused for safety\n"
+
+
+def test_a_single_point_is_counted_as_one(tmp_path):
+    """Item 5d: 'only 0 valid points' came from the scan after rasterising, not from the file."""
+    (tmp_path / "one.xyz").write_text("1 2 3\n")
+    r = CliRunner().invoke(main, ["preprocess", str(tmp_path / "one.xyz"), "-o", str(tmp_path / "out"), "--jobs", "1"])
+    assert r.exit_code == 1
+    assert f"{tmp_path / 'one.xyz'}: failed: only 1 valid point\n" in r.output
