@@ -174,8 +174,10 @@ LANDMARK_COLUMNS = ("nose_tip", "nose_bridge", "left_eye_inner", "right_eye_inne
 
 
 @main.command()
-@click.argument("inputs", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.argument("inputs", nargs=-1, required=True, type=click.Path())
 @click.option("-o", "--out", "outdir", required=True, type=click.Path(file_okay=False))
+@click.option("--overwrite", is_flag=True, help="Replace the faces and landmarks.csv an earlier preprocess wrote "
+              "into OUT (they are removed first); without it such a folder is refused.")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False), help="TOML or JSON preprocessing settings.")
 @click.option("--format", "fmt", type=click.Choice(["npz", "ply"]), default="npz", show_default=True)
 @click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", type=click.IntRange(min=1),
@@ -183,19 +185,24 @@ LANDMARK_COLUMNS = ("nose_tip", "nose_bridge", "left_eye_inner", "right_eye_inne
 @click.option("--intrinsics", type=click.Path(dir_okay=False), default=None,
               help="Depth frames: pinhole intrinsics JSON (fx, fy, cx, cy); default: an intrinsics.json beside them.")
 @friendly
-def preprocess(inputs, outdir, config_file, fmt, jobs, intrinsics):
-    """Preprocess scans INPUTS into normalised faces in OUT, with OUT/landmarks.csv (chapter §8.5). Outputs are
-    named after the inputs; when files of several folders share a name, after folder and file (s000/front_1.png
-    gives s000_front_1.npz). Exit code 1 when no scan could be used."""
+def preprocess(inputs, outdir, overwrite, config_file, fmt, jobs, intrinsics):
+    """Preprocess scans INPUTS (files, dataset folders or manifests, as for enroll) into normalised faces in OUT,
+    with OUT/landmarks.csv (chapter §8.5). Outputs are named after the inputs; when files of several folders share
+    a name, after folder and file (s000/front_1.png gives s000_front_1.npz). An OUT holding an earlier
+    preprocess's output is refused unless --overwrite. Exit code 1 when no scan could be used."""
     from tqdm import tqdm
 
+    from facerec3d.evaluation.report import claim_run_folder
+    from facerec3d.gallery.service import scan_paths
     from facerec3d.io import save_scan, unique_stems
     from facerec3d.preprocess import PreprocessConfig, landmarks_in_input_frame
     from facerec3d.preprocess.batch import preprocess_files
     from facerec3d.preprocess.pipeline import QUALITY_FIELDS, scan_quality
 
     config = PreprocessConfig.load(config_file) if config_file else PreprocessConfig()
+    inputs = scan_paths(inputs)
     out = Path(outdir)
+    claim_run_folder(out, overwrite, files=_preprocess_outputs(out), what="a preprocess output")
     out.mkdir(parents=True, exist_ok=True)
     header = (["scan", "status", "output"] + [f"{n}_{'xyz'[k]}" for n in LANDMARK_COLUMNS for k in range(3)]
               + list(QUALITY_FIELDS))
@@ -221,6 +228,16 @@ def preprocess(inputs, outdir, config_file, fmt, jobs, intrinsics):
     click.echo(f"{len(inputs) - failed} kept, {failed} failed; landmarks and quality in {out / 'landmarks.csv'}")
     if failed == len(inputs):
         sys.exit(1)
+
+
+def _preprocess_outputs(out: Path) -> list[str]:
+    """The names of the files an earlier `preprocess` wrote into OUT: landmarks.csv and the faces it lists."""
+    listing = out / "landmarks.csv"
+    if not listing.is_file():
+        return []
+    with open(listing, newline="", errors="replace") as f:
+        faces = [Path(row["output"]).name for row in csv.DictReader(f) if row.get("output")]
+    return ["landmarks.csv", *(name for name in faces if Path(name).suffix in (".npz", ".ply"))]
 
 
 def _cache_folder(cache: str | None) -> "str | Path":
@@ -1009,13 +1026,15 @@ def cache_clear(folder):
 @main.command()
 @click.argument("runs", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False))
 @click.option("--out", "out", default="compare", show_default=True, type=click.Path(file_okay=False))
+@click.option("--overwrite", is_flag=True, help="Replace the comparison already in --out (its files are removed "
+              "first); without it such a folder is refused.")
 @friendly
-def compare(runs, out):
+def compare(runs, out, overwrite):
     """Overlay several evaluation runs' ROC, DET and CMC curves, tabulate their figures with 95% intervals, and
     test each pair's rank-1 on the same probes (McNemar)."""
     from facerec3d.evaluation.compare import compare_runs
 
-    result = compare_runs(list(runs), out)
+    result = compare_runs(list(runs), out, overwrite)
     for t in result["mcnemar"]:
         if not t["n"]:
             click.echo(f"rank-1: {t['a']} and {t['b']} share no probe (runs on other data): no McNemar test")
@@ -1139,7 +1158,7 @@ def demo(subjects, scans, methods, out, jobs, seed):
         m = run(out / "data", name, out / name, jobs=jobs, cache=out / "cache",
                 train=out / "train" if name in learnt else None, overwrite=True)  # its own runs: made again
         _print_metrics(m)
-    compare_runs([out / name for name in names], out / "compare")
+    compare_runs([out / name for name in names], out / "compare", overwrite=True)  # its own comparison
     click.echo(f"\nreports: {out / 'compare' / 'compare.html'} (all methods), {out}/<method>/report.html")
 
 

@@ -3,6 +3,7 @@ repeat (as in rap3df-2019), evaluated and scored again; run folders; the protoco
 Ctrl-C; the error layout; messages; the service's intrinsics as a file part; the threshold hint."""
 
 import csv
+import gzip
 import json
 import re
 import subprocess
@@ -103,6 +104,24 @@ def test_a_run_folder_is_not_overwritten_without_overwrite(run, frames, tmp_path
     assert (folder / "notes.txt").read_text() == "mine"
 
 
+def test_a_comparison_is_not_overwritten_without_overwrite(run, tmp_path):
+    """As evaluate's run folder: refused with one line naming --overwrite (nothing touched); with it, the old
+    comparison's files go, others stay."""
+    out, _ = run
+    folder = tmp_path / "cmp"
+    args = ["compare", str(out), "--out", str(folder)]
+    assert CliRunner().invoke(main, args).exit_code == 0
+    (folder / "compare.md").write_text("an older comparison")
+    (folder / "notes.txt").write_text("mine")
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
+    assert r.output.startswith(f"error: {folder}: holds a comparison already (") and "--overwrite" in r.output
+    assert (folder / "compare.md").read_text() == "an older comparison"
+    r = CliRunner().invoke(main, args + ["--overwrite"])
+    assert r.exit_code == 0, r.output
+    assert "icp" in (folder / "compare.md").read_text() and (folder / "notes.txt").read_text() == "mine"
+
+
 def test_bosphorus_protocol_on_a_dataset_without_bosphorus_types_is_refused(frames, tmp_path):
     """Item 6."""
     r = CliRunner().invoke(main, ["evaluate", str(frames), "--protocol", "bosphorus", "--out", str(tmp_path / "b"),
@@ -118,6 +137,42 @@ def test_preprocess_names_outputs_after_the_person(frames, tmp_path):
     r = CliRunner().invoke(main, ["preprocess", *inputs, "-o", str(tmp_path / "faces"), "--jobs", "1"])
     assert r.exit_code == 0, r.output
     assert sorted(p.name for p in (tmp_path / "faces").glob("*.npz")) == ["04200_front_1.npz", "04201_front_1.npz"]
+
+
+@pytest.mark.parametrize("given", ["folder", "manifest"])
+def test_preprocess_takes_a_folder_or_a_manifest_as_enroll_does(frames, tmp_path, given):
+    """A dataset folder or its manifest.csv gives all the scans it lists, named as files given one by one are."""
+    data = tmp_path / "data"
+    data.mkdir()
+    rows = [f"{frames / s / 'front_1.png'},{s}" for s in ("04200", "04201")]
+    (data / "manifest.csv").write_text("path,subject\n" + "\n".join(rows) + "\n")
+    source = data if given == "folder" else data / "manifest.csv"
+    r = CliRunner().invoke(main, ["preprocess", str(source), "-o", str(tmp_path / "faces"), "--jobs", "1"])
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in (tmp_path / "faces").glob("*.npz")) == ["04200_front_1.npz", "04201_front_1.npz"]
+    with open(tmp_path / "faces" / "landmarks.csv") as f:
+        assert [row["scan"] for row in csv.DictReader(f)] == [str(frames / s / "front_1.png") for s in ("04200", "04201")]
+
+
+def test_preprocess_into_an_earlier_output_is_refused_without_overwrite(frames, tmp_path):
+    """landmarks.csv lists exactly the faces in OUT: a second preprocess into it is refused (nothing touched);
+    with --overwrite the earlier faces and landmarks.csv go, other files stay."""
+    faces = tmp_path / "faces"
+    first = ["preprocess", str(frames / "04200" / "front_1.png"), "-o", str(faces), "--jobs", "1"]
+    assert CliRunner().invoke(main, first).exit_code == 0
+    (faces / "notes.txt").write_text("mine")
+    before = (faces / "landmarks.csv").read_text()
+    again = ["preprocess", str(frames / "04201" / "front_1.png"), "-o", str(faces), "--jobs", "1", "--format", "ply"]
+    r = CliRunner().invoke(main, again)
+    assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
+    assert r.output.startswith(f"error: {faces}: holds a preprocess output already (landmarks.csv, front_1.npz)")
+    assert "--overwrite" in r.output
+    assert (faces / "landmarks.csv").read_text() == before and (faces / "front_1.npz").is_file()
+    r = CliRunner().invoke(main, again + ["--overwrite"])
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in faces.iterdir()) == ["front_1.ply", "landmarks.csv", "notes.txt"]
+    with open(faces / "landmarks.csv") as f:
+        assert [row["output"] for row in csv.DictReader(f)] == [str(faces / "front_1.ply")]
 
 
 def test_the_cache_says_where_it_is_and_can_be_listed_and_cleared(frames, tmp_path, monkeypatch):
@@ -379,3 +434,65 @@ def test_reading_an_empty_file_as_a_gallery_leaves_it_empty(tmp_path):
         assert r.exit_code == 2 and r.output.strip() == f"error: {empty}: an empty file, not a gallery (enrol into it "\
                                                         "first)", r.output
     assert empty.stat().st_size == 0
+
+
+def test_serve_on_a_port_in_use_is_one_line_before_anything_starts(tmp_path):
+    """Not the banner and then uvicorn's error (exit 3): the address is checked before the gallery loads."""
+    import socket
+
+    pytest.importorskip("fastapi")
+    from facerec3d.server.keys import add_key
+
+    add_key(tmp_path / "keys.json", "alice", "query")
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        r = CliRunner().invoke(main, ["serve", "--gallery", str(tmp_path / "g.sqlite"), "--keys",
+                                      str(tmp_path / "keys.json"), "--port", str(port), "--jobs", "1"])
+    assert r.exit_code == 2, r.output
+    assert r.output == f"error: 127.0.0.1:{port}: address already in use\n"
+    assert not (tmp_path / "g.sqlite").exists()  # refused before the gallery was made
+
+
+def _ply(vertices: int, rows: int) -> bytes:
+    """A binary PLY whose header promises `vertices` (x, y, z floats) and that holds `rows` of them."""
+    head = (f"ply\nformat binary_little_endian 1.0\nelement vertex {vertices}\nproperty float x\nproperty float y\n"
+            "property float z\nend_header\n").encode()
+    return head + np.arange(3 * rows, dtype="<f4").tobytes()
+
+
+@pytest.mark.parametrize("name, content, reason", [
+    ("text.npz", b"an archive? no\n", "not a NumPy file: neither an .npy array nor an .npz archive"),
+    ("cut.ply", _ply(1000, 2), "truncated PLY: header promises 1000 vertices, the file holds fewer (bytes"),
+    ("cut.ply", _ply(100, 10), "truncated PLY: header promises 100 vertices, the file holds only 10"),
+    ("packed.xyz", gzip.compress(b"1.0 2.0 3.0\n" * 500, mtime=0), "not a text point file (gzip-compressed data"),
+    ("noise.xyz", bytes(range(256)) * 4, "not a text point file (binary data)"),
+], ids=["text-as-npz", "ply-short-of-its-size", "ply-short-of-rows", "gzip-as-xyz", "binary-as-xyz"])
+def test_messages_of_files_that_are_not_what_their_names_say(tmp_path, name, content, reason):
+    """Item 5: the reason in the user's words: no option they cannot set (NumPy's allow_pickle), no byte-string
+    reprs, no binary garbage quoted."""
+    path = tmp_path / name
+    path.write_bytes(content)
+    r = CliRunner().invoke(main, ["info", str(path)])
+    assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
+    expected = f"error: {path}: {reason}"
+    if reason.endswith("(bytes"):  # the size in bytes is said
+        expected = expected.removesuffix("(bytes") + f"({path.stat().st_size} bytes in all)"
+    assert r.output.startswith(expected), r.output
+    assert r.output[:-1].isprintable() and "\ufffd" not in r.output  # no binary data quoted
+
+
+def test_an_array_of_python_objects_is_refused_for_safety_not_loaded_unsafely(tmp_path):
+    np.save(tmp_path / "objects.npy", np.array([{"a": 1}, None], dtype=object), allow_pickle=True)
+    r = CliRunner().invoke(main, ["info", str(tmp_path / "objects.npy")])
+    assert r.exit_code == 2
+    assert r.output == f"error: {tmp_path / 'objects.npy'}: holds pickled Python objects, which are refused for safety\n"
+
+
+def test_a_single_point_is_counted_as_one(tmp_path):
+    """Item 5d: 'only 0 valid points' came from the scan after rasterising, not from the file."""
+    (tmp_path / "one.xyz").write_text("1 2 3\n")
+    r = CliRunner().invoke(main, ["preprocess", str(tmp_path / "one.xyz"), "-o", str(tmp_path / "out"), "--jobs", "1"])
+    assert r.exit_code == 1
+    assert f"{tmp_path / 'one.xyz'}: failed: only 1 valid point\n" in r.output

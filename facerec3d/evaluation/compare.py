@@ -13,9 +13,11 @@ from scipy.stats import binomtest
 
 from facerec3d.evaluation.plots import plot_cmc, plot_det, plot_roc
 from facerec3d.errors import InputError
-from facerec3d.evaluation.report import SET_COLUMNS, format_value, with_interval, write_pages
+from facerec3d.evaluation.report import SET_COLUMNS, claim_run_folder, format_value, with_interval, write_pages
 
 ALPHA = 0.05  # significance level of the McNemar tests
+#: The files compare_runs writes: a folder holding any of them holds a comparison.
+COMPARE_FILES = ("compare_roc.png", "compare_det.png", "compare_cmc.png", "compare.html", "compare.md")
 
 
 def _load(run_dir: Path) -> tuple[dict, dict[str, np.ndarray]]:
@@ -60,7 +62,7 @@ def mcnemar(a: dict[str, bool | None], b: dict[str, bool | None]) -> dict:
     return {"n": len(common), "a_only": a_only, "b_only": b_only, "p": float(p)}
 
 
-def compare_runs(run_dirs: Sequence[str | Path], out_dir: str | Path) -> dict:
+def compare_runs(run_dirs: Sequence[str | Path], out_dir: str | Path, overwrite: bool = False) -> dict:
     """Overlay the runs' curves and tabulate them in out_dir.
 
     Writes compare_roc.png and compare_cmc.png, compare_det.png when some run
@@ -76,7 +78,9 @@ def compare_runs(run_dirs: Sequence[str | Path], out_dir: str | Path) -> dict:
     every pair of runs with probes.csv: probes compared, hits of one missed
     by the other each way, p, and whether they differ at the 5 % level. A run
     without curves.npz is tabulated but not plotted. Raises ValueError naming
-    the folder when a run folder has no metrics.json.
+    the folder when a run folder has no metrics.json, and an InputError when
+    out_dir holds a comparison already (COMPARE_FILES) unless `overwrite`,
+    with which those files are removed first.
 
     Returns {"columns", "rows" (the Figures table), "tables" [(heading,
     columns, rows)], "mcnemar" [{"a", "b", "n", "a_only", "b_only", "p",
@@ -138,7 +142,7 @@ def compare_runs(run_dirs: Sequence[str | Path], out_dir: str | Path) -> dict:
                        ["runs", "probes", "hit by first only", "hit by second only", "p", "verdict"],
                        [t.pop("row") for t in tests]))
 
-    out = Path(out_dir)
+    out = claim_run_folder(out_dir, overwrite, files=COMPARE_FILES, what="a comparison")
     out.mkdir(parents=True, exist_ok=True)
     plots = {}
 

@@ -36,18 +36,19 @@ RUN_FILES = ("metrics.json", "scores.txt", "probes.csv", "curves.npz", "roc.png"
              "preprocess.json")
 
 
-def claim_run_folder(out_dir: str | Path, overwrite: bool = False, keep: Sequence[str | Path | None] = ()) -> Path:
-    """Make `out_dir` ready for a new run: refuse (InputError) a folder that already holds a run unless
-    `overwrite`, and then remove that run's files (`RUN_FILES`; other files stay), except those in `keep` (e.g.
-    the model the new run loads)."""
+def claim_run_folder(out_dir: str | Path, overwrite: bool = False, keep: Sequence[str | Path | None] = (),
+                     files: Sequence[str] = RUN_FILES, what: str = "a run") -> Path:
+    """Make `out_dir` ready for a new run: refuse (InputError) a folder that already holds `what` (any of the
+    file names `files`: a run's, `RUN_FILES`, by default) unless `overwrite`, and then remove those files (other
+    files stay), except those in `keep` (e.g. the model the new run loads)."""
     from facerec3d.errors import InputError
 
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: not a folder (a run folder is written there)")
-    held = [out / name for name in RUN_FILES if (out / name).is_file()]
+    held = [out / name for name in dict.fromkeys(files) if (out / name).is_file()]
     if held and not overwrite:
-        raise InputError(f"{out}: holds a run already ({', '.join(p.name for p in held[:3])}"
+        raise InputError(f"{out}: holds {what} already ({', '.join(p.name for p in held[:3])}"
                          f"{', ...' if len(held) > 3 else ''}): give --overwrite to replace it, or another --out")
     kept = {Path(k).resolve() for k in keep if k is not None}
     for path in held:

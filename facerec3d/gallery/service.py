@@ -16,7 +16,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from facerec3d.datasets.catalog import DatasetError, ScanRecord, manifest_record, open_dataset, scan_record
+from facerec3d.datasets.catalog import (Dataset, DatasetError, ScanRecord, manifest_record, open_dataset,
+                                        scan_record)
 from facerec3d.datasets.protocols import split
 from facerec3d.gallery.cascade import CascadeConfig
 from facerec3d.gallery.engine import Engine
@@ -62,8 +63,7 @@ def scan_records(data: Iterable[str | Path], subject: str | None = None,
     out: list[ScanRecord] = []
     from_stem: dict[str, set[Path]] = {}
     for item in map(Path, data):
-        if item.is_dir() or _is_manifest(item):
-            dataset = open_dataset(item)
+        if (dataset := _dataset_of(item)) is not None:
             chosen = split(dataset, None).gallery if gallery_only else range(len(dataset))
             out += [dataset.records[i] for i in chosen]
         else:
@@ -78,9 +78,24 @@ def scan_records(data: Iterable[str | Path], subject: str | None = None,
     return out
 
 
+def scan_paths(data: Iterable[str | Path]) -> list[Path]:
+    """The scan files of DATA arguments, found as `scan_records` finds them (every scan of dataset folders and
+    manifest CSVs; scan files as given), where their subjects do not matter (`facerec3d preprocess`)."""
+    out: list[Path] = []
+    for item in map(Path, data):
+        dataset = _dataset_of(item)
+        out += [item] if dataset is None else [r.path for r in dataset]
+    return out
+
+
+def _dataset_of(item: Path) -> Dataset | None:
+    """The dataset a DATA argument names (a folder, or a manifest CSV), or None for a scan file."""
+    return open_dataset(item) if item.is_dir() or _is_manifest(item) else None
+
+
 def _is_manifest(path: Path) -> bool:
     """A CSV file whose header names the columns path and subject (other CSV files are point-cloud scans)."""
-    if path.suffix.lower() != ".csv":
+    if path.suffix.lower() != ".csv" or not path.is_file():  # a missing file: the reader says so
         return False
     with open(path, newline="", errors="replace") as f:
         header = {c.strip().lower() for c in f.readline().split(",")}

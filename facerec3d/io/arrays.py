@@ -30,6 +30,7 @@ PROVENANCE_KEY = "provenance"  # (H, W) uint8 image of a grid scan's FaceScan.pr
 MAX_MEMBERS = 256  # members of an .npz (the scan, its mask, its meta and landmarks)
 MAX_META_CHARS = 1 << 20  # characters of the meta_json text
 MAX_ITEM_BYTES = 8  # bytes per value: float64 is the widest numeric type read
+NPY_MAGIC = b"\x93NUMPY"  # the start of an .npy file (an .npz is a zip archive of them: "PK")
 
 
 def _points(path: str | Path, shape: tuple[int, ...]) -> int:
@@ -70,16 +71,24 @@ def _from_array(path: str | Path, a: np.ndarray, valid: np.ndarray | None = None
     return point_scan(path, a[~np.isnan(a).any(axis=1)])
 
 
+def _npy_header(path: str | Path, f, where: str = "") -> tuple[tuple[int, ...], np.dtype]:
+    """(shape, dtype) from the .npy header that `f` starts with, read without the data; an array of Python
+    objects (stored pickled) is refused here, before NumPy is asked to load it. `where` prefixes messages."""
+    version = np.lib.format.read_magic(f)
+    read_header = {(1, 0): np.lib.format.read_array_header_1_0,
+                   (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+    if read_header is None:
+        raise ScanFormatError(path, f"{where}unsupported .npy version {version}")
+    shape, _, dtype = read_header(f)
+    if dtype.hasobject:
+        raise ScanFormatError(path, f"{where}holds pickled Python objects, which are refused for safety")
+    return shape, dtype
+
+
 def _member_header(path: str | Path, z: zipfile.ZipFile, member: str) -> tuple[tuple[int, ...], np.dtype]:
     """(shape, dtype) of an .npz member from its .npy header, read without inflating the data."""
     with z.open(member) as f:
-        version = np.lib.format.read_magic(f)
-        read_header = {(1, 0): np.lib.format.read_array_header_1_0,
-                       (2, 0): np.lib.format.read_array_header_2_0}.get(version)
-        if read_header is None:
-            raise ScanFormatError(path, f"member {member[:80]!r}: unsupported .npy version {version}")
-        shape, _, dtype = read_header(f)
-    return shape, dtype
+        return _npy_header(path, f, f"member {member[:80]!r}: ")
 
 
 def read_numpy(path: str | Path) -> FaceScan:
@@ -88,9 +97,14 @@ def read_numpy(path: str | Path) -> FaceScan:
     accepted (MAX_POINTS points)."""
     with library_errors(path, "NumPy file"):
         with open(path, "rb") as f:
-            magic = f.read(4)
-        if not magic.startswith(b"PK"):  # not a zip: a single .npy array, memory-mapped until checked
+            magic = f.read(len(NPY_MAGIC))
+            if magic == NPY_MAGIC:  # a single .npy array, memory-mapped until checked
+                f.seek(0)
+                _npy_header(path, f)
+        if magic == NPY_MAGIC:
             return _from_array(path, np.load(path, mmap_mode="r", allow_pickle=False))
+        if not magic.startswith(b"PK"):  # NumPy would take it for a pickle, and name an option to load it unsafely
+            raise ScanFormatError(path, "not a NumPy file: neither an .npy array nor an .npz archive")
         with np.load(path, allow_pickle=False) as z:
             members = z.zip.namelist()
             if len(members) > MAX_MEMBERS:

@@ -39,12 +39,32 @@ def _check_ply_header(path: str | Path) -> None:
     if not head.startswith(b"ply") or end < 0:
         raise ScanFormatError(path, "not a PLY file (no 'ply' magic or no 'end_header')")
     for name, count in PLY_ELEMENT_LINE.findall(head[:end]):
-        if not count.isdigit() or int(count) > size:
-            raise ScanFormatError(path, f"bad PLY header: {count[:20]!r} {name[:20]!r} elements in {size} bytes")
-        most = MAX_POINTS if name == b"vertex" else 4 * MAX_POINTS
+        name, count = name[:20].decode(errors="replace"), count[:20].decode(errors="replace")
+        if not count.isdigit():
+            raise ScanFormatError(path, f"bad PLY header: the count of element {name!r} is {count!r}, not a number")
+        if int(count) > size:
+            raise _truncated(path, name, count, f"fewer ({size} bytes in all)")
+        most = MAX_POINTS if name == "vertex" else 4 * MAX_POINTS
         if int(count) > most:
-            raise ScanFormatError(path, f"absurd size: {int(count)} {name[:20].decode(errors='replace')} elements "
-                                        f"(more than {most})")
+            raise ScanFormatError(path, f"absurd size: {int(count)} {name} elements (more than {most})")
+
+
+def _truncated(path: str | Path, name: str, count: int | str, holds: str) -> ScanFormatError:
+    """The error of a PLY file that ends before the `count` `name` elements its header promises (it `holds` ...)."""
+    what = "vertices" if name == "vertex" else f"{name} elements"
+    return ScanFormatError(path, f"truncated PLY: header promises {count} {what}, the file holds {holds}")
+
+
+def _read_ply_elementwise(path: str | Path):
+    """plyfile's reading element by element (any polygons); a file that ends early is a ScanFormatError saying so."""
+    from plyfile import PlyData, PlyElementParseError
+
+    try:
+        return PlyData.read(str(path))
+    except PlyElementParseError as e:
+        if e.message != "early end-of-file" or e.element is None:
+            raise
+        raise _truncated(path, e.element.name, e.element.count, f"only {e.row}") from None
 
 
 def _stack(vertex: np.ndarray, names: tuple[str, str, str], dtype) -> np.ndarray | None:
@@ -63,7 +83,7 @@ def read_ply(path: str | Path) -> FaceScan:
         try:  # fast: triangle lists memory-mapped
             ply = PlyData.read(str(path), known_list_len=TRIANGLES)
         except Exception:  # other polygons, or a corrupt file: read again element by element
-            ply = PlyData.read(str(path))
+            ply = _read_ply_elementwise(path)
         vertex = ply["vertex"].data
         points = _stack(vertex, ("x", "y", "z"), np.float64)
         normals = _stack(vertex, ("nx", "ny", "nz"), np.float64)

@@ -26,6 +26,17 @@ def _is_number(token: str) -> bool:
 
 MAX_LINE = 4096  # characters in one line: a point needs a few dozen
 CHUNK_LINES = 65536  # lines parsed at a time
+GZIP_MAGIC = b"\x1f\x8b"
+CONTROL = bytes(set(range(32)) - set(b"\t\n\v\f\r")) + b"\x7f"  # bytes no text point file holds
+
+
+def _check_text(path: str | Path, head: bytes) -> None:
+    """Refuse a file whose first bytes `head` are not text (compressed or binary data), before its lines are
+    parsed (and quoted in messages)."""
+    if head.startswith(GZIP_MAGIC):
+        raise ScanFormatError(path, "not a text point file (gzip-compressed data: decompress it first)")
+    if any(b in CONTROL for b in head):
+        raise ScanFormatError(path, "not a text point file (binary data)")
 
 
 def read_text_points(path: str | Path) -> FaceScan:
@@ -33,6 +44,7 @@ def read_text_points(path: str | Path) -> FaceScan:
     MAX_LINE characters, or more than MAX_POINTS points, is refused as soon as it is met."""
     blocks, count, first = [], 0, True
     with open_binary(path) as raw, io.TextIOWrapper(raw, encoding="utf-8-sig", errors="replace") as f:
+        _check_text(path, raw.peek(MAX_LINE)[:MAX_LINE])
         while True:
             rows = []
             while len(rows) < CHUNK_LINES:

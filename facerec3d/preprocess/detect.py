@@ -218,10 +218,18 @@ def nose_candidates(scan: FaceScan, config: DetectConfig = DetectConfig()) -> tu
     return sub, np.array([index[r, c] for r, c in found], dtype=np.int64), np.array(rim, dtype=bool)
 
 
+MIN_POINTS = 100  # valid points that a face needs at the least
+
+
+def check_points(scan: FaceScan) -> None:
+    """FailureToAcquire when the scan has fewer valid points than any face needs, saying how many it has."""
+    if scan.n_points < MIN_POINTS:
+        raise FailureToAcquire(f"only {scan.n_points} valid point{'s' * (scan.n_points != 1)}", scan.meta.path)
+
+
 def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detection:
     """Find the nose tip, fiducials and frontal pose of a scan; raises FailureToAcquire when no face fits."""
-    if scan.n_points < 100:
-        raise FailureToAcquire(f"only {scan.n_points} valid points", scan.meta.path)
+    check_points(scan)
     if scan.grid is None:
         raise ValueError("face detection needs a range-image grid (see preprocess.gridify)")
     sub, cands, rim = nose_candidates(scan, config)

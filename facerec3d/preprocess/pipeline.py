@@ -49,7 +49,7 @@ import numpy as np
 from facerec3d.config import from_dict, read_settings
 from facerec3d.preprocess.denoise import (DenoiseConfig, DequantiseConfig, SmoothConfig, denoise, dequantise,
                                          smooth_range_image)
-from facerec3d.preprocess.detect import DetectConfig, crop_sphere, detect_face
+from facerec3d.preprocess.detect import DetectConfig, check_points, crop_sphere, detect_face
 from facerec3d.preprocess.holes import HoleConfig, fill_holes
 from facerec3d.preprocess.orient import OrientConfig, orient
 from facerec3d.preprocess.resample import ResampleConfig, gridify, resample
@@ -119,6 +119,7 @@ class Preprocessor:
 
     def __call__(self, scan: FaceScan) -> FaceScan:
         cfg = self.config
+        check_points(scan)  # the count as read: a sparse cloud has fewer once rasterised (`gridify`)
         scan, view = self._timed("orient", orient, scan, cfg.orient, cfg.detect)
         scan = self._timed("gridify", gridify, scan, cfg.gridify_mm)
         sampling = self._timed("measure", measure_sampling, scan)

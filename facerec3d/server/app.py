@@ -26,6 +26,7 @@ import hashlib
 import json
 import math
 import re
+import socket
 import sys
 import threading
 import time
@@ -748,18 +749,33 @@ def create_app(service: Service):
     return Gate(app, service)
 
 
+def check_address(host: str, port: int) -> None:
+    """Refuse an address this process cannot listen on (in use, not this machine's) with an OSError naming
+    host:port (`error: 127.0.0.1:8000: address already in use` on the command line), bound as uvicorn binds it
+    and let go again."""
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((host, port))
+        except OSError as e:
+            e.filename = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+            raise
+
+
 def serve(gallery: str | Path, keys: str | Path, host: str = "127.0.0.1", port: int = 8000, jobs: int | None = None,
           scheduler: str | None = None, method: str | None = None, options: dict | None = None, config=None,
           settings: ServiceSettings | None = None, max_points: int = 5_000_000, audit: str | Path | None = None,
           ssl_certfile: str | None = None, ssl_keyfile: str | None = None, echo=print) -> None:
     """Load the gallery into `jobs` worker processes (or a Dask cluster's workers) and answer HTTP on host:port
-    until interrupted (SIGINT / SIGTERM: in-flight requests finish, the workers stop)."""
+    until interrupted (SIGINT / SIGTERM: in-flight requests finish, the workers stop). An address that cannot be
+    listened on (one in use) is refused first, with an OSError naming it."""
     import uvicorn
 
     from facerec3d.preprocess.batch import one_thread_per_process
     from facerec3d.server.live import AuditLog
 
     settings = settings or ServiceSettings()
+    check_address(host, port)  # before the gallery loads and the banner says the service is up
     key_file = KeyFile(keys)  # refuse to start without keys
     one_thread_per_process()  # the service's own BLAS: one thread (work runs on the workers)
     live = LiveGallery(gallery, jobs, scheduler, method, options, config,
