@@ -3,6 +3,7 @@
     python benchmarks/real_bench.py [--data ../shared/data/rap3df-2019] [--methods icp,...] [--jobs 2]
                                     [--out runs/real] [--anchors o3d-raw,o3d-fair] [--cache DIR] [--options JSON]
                                     [--preprocess-config FILE] [--train DIR] [--scores LABEL=FILE,...]
+                                    [--seeds N]
 
 Data: the rap3df-2019 folder (80 people, 521 Kinect v2 depth frames, 149 x 119 16-bit PNGs in mm,
 `intrinsics.json`, `manifest.csv` with `path,subject,pose,role`; see its README.md). It comes from the
@@ -65,6 +66,13 @@ has no JIT, so nothing is compiled); facerec3d, its own `timings` from metrics.j
 time of `evaluate`. The first facerec3d method run includes Numba's JIT
 compilation unless Numba's on-disk cache is already warm (reported), and every method's
 preprocessing runs on cold (no) cache.
+
+`--seeds N` runs every method that draws ICP's probe points at random (icp, region-icp, a fusion with either)
+N times, with ICP's `seed` 0 ... N-1 (labels NAME@seed0, ...), and adds a row NAME (mean of N seeds) to each
+table: each figure averaged over the seeds, with the lowest and highest rank-1 over all probes in the notes. The
+seed draws which 1,000 of a probe's points ICP aligns and scores; on these 40-person halves two seeds differ by
+up to ~5 points of rank-1 (docs/methods.md, "Reading the real figures"), so a variant is compared with its
+baseline by the mean over seeds, not by one run.
 
 `--scores LABEL=FILE,...` adds systems from score files without running anything: a fusion of earlier runs'
 members, e.g. `facerec3d fuse OUT/icp/scores.txt OUT/region-icp/scores.txt OUT/embedding/scores.txt --rule
@@ -328,6 +336,64 @@ def method_specs(text: str, options: dict | None) -> list[tuple[str, str, dict |
     return specs
 
 
+def _merged(base: dict | None, extra: dict) -> dict:
+    """`base` with the tables of `extra` merged in, nested tables field by field (neither is changed)."""
+    out = dict(base or {})
+    for key, value in extra.items():
+        out[key] = _merged(out.get(key), value) if isinstance(value, dict) else value
+    return out
+
+
+def with_seed(method: str, options: dict | None, seed: int) -> dict | None:
+    """The method's settings with ICP's probe-subset `seed` set wherever ICP runs (icp, region-icp's regions, a
+    fusion's icp and region-icp members); None when the method draws nothing at random."""
+    if method == "icp":
+        return _merged(options, {"seed": seed})
+    if method == "region-icp":
+        return _merged(options, {"icp": {"seed": seed}})
+    if method == "fusion":
+        from facerec3d.matching.fusion import FusionConfig
+
+        members = (options or {}).get("members", FusionConfig().members)
+        seeded = {m: with_seed(m, ((options or {}).get("member_options") or {}).get(m), seed) for m in members}
+        seeded = {m: o for m, o in seeded.items() if o is not None}
+        return _merged(options, {"member_options": seeded}) if seeded else None
+    return None
+
+
+def seeded_specs(specs: list, seeds: int) -> tuple[list, dict[str, list[str]]]:
+    """Each spec that draws at random, once per seed (label@seedK); and {label: its seeds' labels}."""
+    out, runs = [], {}
+    for label, method, options in specs:
+        if seeds > 1 and with_seed(method, options, 0) is not None:
+            runs[label] = [f"{label}@seed{k}" for k in range(seeds)]
+            out += [(run, method, with_seed(method, options, k)) for k, run in enumerate(runs[label])]
+        else:
+            out.append((label, method, options))
+    return out, runs
+
+
+def mean_over_seeds(results: dict, runs: dict[str, list[str]]) -> list[str]:
+    """Add to each group a row `label (mean of N seeds)` averaging the seeds' figures; the notes giving each
+    group's lowest and highest rank-1 over all probes."""
+    notes = []
+    for label, names in runs.items():
+        names = [n for n in names if n in results["all"]]
+        if not names:
+            continue
+        spread = []
+        for group, per_system in results.items():
+            rows = [per_system[n] for n in names]
+            per_system[f"{label} (mean of {len(rows)} seeds)"] = {
+                k: (float(np.mean([r[k] for r in rows])) if all(isinstance(r.get(k), float) for r in rows)
+                    else rows[0].get(k)) for k in rows[0]}
+            r1 = [r["rank1_all"] for r in rows if r["rank1_all"] is not None]
+            if r1:
+                spread.append(f"{group} {pct(min(r1))}–{pct(max(r1))}")
+        notes.append(f"{label}: rank-1 all over {len(names)} seeds: " + ", ".join(spread))
+    return notes
+
+
 def training_set(root: Path) -> Path:
     """The training set of learnt methods (PCA, LDA): synthetic Kinect v2 frames of 60 generator identities x 5
     scans (subjects numbered from 1000, seed 1; no real person in it), written under `root` once. Training on real
@@ -574,6 +640,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scores", default="",
                     help="LABEL=FILE,...: systems read from score files (bob4, e.g. `facerec3d fuse` of earlier runs' "
                          "scores.txt), reported beside the methods, not run")
+    ap.add_argument("--seeds", type=int, default=1,
+                    help="run each method that draws ICP's probe points at random with seeds 0..N-1 and report "
+                         "their mean (default 1: the default seed only)")
     ap.add_argument("--train", type=Path, default=Path("bench-out/data/train-kinect-v2"),
                     help="training set of the learnt methods (pca, lda); written there (synthetic kinect-v2) if missing")
     args = ap.parse_args(argv)
@@ -595,7 +664,9 @@ def main(argv=None) -> int:
     from facerec3d.matching.registry import make_matcher
     from facerec3d.preprocess import PreprocessConfig
 
-    specs = method_specs(args.methods, args.options)
+    if args.seeds < 1:
+        ap.error("--seeds must be at least 1")
+    specs, seed_runs = seeded_specs(method_specs(args.methods, args.options), args.seeds)
     config = PreprocessConfig.load(args.preprocess_config) if args.preprocess_config else PreprocessConfig()
     methods = [label for label, _, _ in specs]
     unknown = set(anchors) - set(ANCHORS)
@@ -634,11 +705,13 @@ def main(argv=None) -> int:
     groups = subject_groups([r["subject"] for r in manifest])
     results = {g: {name: group_metrics(s, members, probe_rows, gallery_rows) for name, s in systems.items()}
                for g, members in groups.items()}
+    seed_notes = mean_over_seeds(results, seed_runs)
+    methods += [name for name in results["all"] if name not in systems]  # the means over seeds
     best = max(methods, key=lambda m: results["tuning"][m]["rank1_all"] or 0.0) if methods else None
     tbls = tables(results, anchors, methods, best)
     times = timing_lines(systems)
     notes = [f"* best facerec3d method (highest rank-1 all on the tuning half): {best}" if best else
-             "no facerec3d method ran", *(f"FAILED {m}: {r}" for m, r in failures.items())]
+             "no facerec3d method ran", *seed_notes, *(f"FAILED {m}: {r}" for m, r in failures.items())]
     print()
     print(render(tbls, "text"))
     print("\n".join(notes + ["", "Times:"] + times))
