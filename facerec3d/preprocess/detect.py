@@ -85,12 +85,12 @@ class DetectConfig:
     identity_penalty: float = 0.1  # ... and the best `placement_score` wins: the identity prior regularises, never gates
     prominence_weight: float = 0.35  # ... with a bonus for a nose standing out as noses do (`prominence`) ...
     prominence_mm: float = 20.0  # ... up to this height above its plane and its dome ...
-    rms_weight: float = 0.0  # ... and, when > 0, less this × how much the full fit's RMS exceeds the best placement's,
+    rms_weight: float = 2.0  # ... less this × how much the full fit's RMS exceeds the best placement's,
     rms_tolerance: float = 0.1  # ... relative, beyond this share (`rms_excess`: hair and the back of a head leave a
-    #                             rougher residue than a face). Off by default: 2 put 12 rap3df-2019 detections on the
-    #                             face and took none off it, but moved 4 of 300 synthetic outside-model faces with a hand
-    #                             130–170 mm away, whose own fit is rougher than a smooth surface's (docs/methods.md,
-    #                             "A face fits smoother than hair")
+    #                             rougher residue than a face). 2 since 2026-12-03, measured over three ICP seeds:
+    #                             rap3df-2019 held-out +2.1 points (default fusion), synthetic sensor, outside-model
+    #                             and FRGC-style sets equal within one probe (docs/methods.md, "A face fits smoother
+    #                             than hair"); 0 turns it off
     coarse: ModelFitConfig = field(default_factory=lambda: ModelFitConfig(
         identity_modes=0, expression_modes=False, iterations=15, start_distance_mm=20.0, end_distance_mm=5.0,
         max_points=800))  # rigid fit of the mean face, to verify each candidate (400 points: 1.25× faster, but the
