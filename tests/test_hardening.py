@@ -111,9 +111,11 @@ def bombs(folder) -> dict[str, str]:
 
     Image.fromarray(np.zeros((2048, 2049), np.uint16)).save(folder / "zeros.png")
     (folder / "intrinsics.json").write_text(json.dumps({"fx": 500, "fy": 500, "cx": 1024, "cy": 1024}))
-    # a point cloud 1 km wide: its grid of 0.7 mm cells would be 1.4 million cells square
-    (folder / "far.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
-                                    "property float z\nend_header\n0 0 0\n1000000 1000000 0\n5 5 5\n")
+    # a point cloud 1 km wide: its grid of 0.7 mm cells would be 1.4 million cells square (enough points that a
+    # face could be there, so it is the grid's size that is refused, not the point count)
+    cluster = "".join(f"{i % 10} {i // 10} 5\n" for i in range(120))
+    (folder / "far.ply").write_text("ply\nformat ascii 1.0\nelement vertex 121\nproperty float x\nproperty float y\n"
+                                    "property float z\nend_header\n1000000 1000000 0\n" + cluster)
     for name in os.listdir(folder):
         assert (folder / name).stat().st_size < 10 << 20
     return {"zeros.abs.gz": "non-numeric", "big.abs.gz": "absurd size", "zeros.npz": "absurd size",
