@@ -67,7 +67,7 @@ def depth_step(scan: FaceScan, min_zero_share: float = 0.3, pitch: float | None 
         return 0.0
     pitch = scan.resolution() if pitch is None else pitch
     d = d[d <= 3.0 * pitch + 1e-9] if np.isfinite(pitch) else d  # same surface, not across an edge
-    zero = d <= max(1e-6, ZERO_SHARE_OF_PITCH * pitch) if np.isfinite(pitch) else d <= 1e-6
+    zero = d <= max(1e-6, ZERO_SHARE_OF_PITCH * pitch if np.isfinite(pitch) else 0.0)
     if zero.mean() < min_zero_share or zero.all():
         return 0.0
     return float(np.median(d[~zero]))
