@@ -324,6 +324,61 @@ def test_the_service_takes_intrinsics_as_a_file_part_or_text(frames, tmp_path):
         service.close()
 
 
+def test_frames_without_intrinsics_beside_them_are_read_with_intrinsics(frames, tmp_path):
+    """ux19 item 1: info, enroll, identify and verify take --intrinsics FILE as preprocess and evaluate do. Frames
+    whose intrinsics.json is elsewhere fail with the reason in one line without it, and are read with it (enroll's
+    calibration on the gallery's own frames included)."""
+    import shutil
+
+    shot = tmp_path / "shots"  # no intrinsics.json in it or above it
+    shot.mkdir()
+    for subject, frame, name in (("04200", "front_1", "04200"), ("04201", "front_1", "04201"),
+                                 ("04200", "front_2", "probe")):  # subjects from the file names
+        shutil.copy(frames / subject / f"{frame}.png", shot / f"{name}.png")
+    camera = tmp_path / "kinect.json"
+    shutil.copy(frames / "intrinsics.json", camera)
+    enrolled = [str(shot / "04200.png"), str(shot / "04201.png")]
+    probe, gallery, cache = str(shot / "probe.png"), str(tmp_path / "g.sqlite"), str(tmp_path / "cache")
+    missing = "a depth image needs pinhole intrinsics"
+
+    r = CliRunner().invoke(main, ["info", probe])
+    assert r.exit_code == 2 and r.output.startswith(f"error: {probe}: {missing}") and r.output.count("\n") == 1
+    assert "--intrinsics" in r.output, r.output
+    r = CliRunner().invoke(main, ["info", probe, "--intrinsics", str(camera)])
+    assert r.exit_code == 0 and r.output.startswith(f"{probe}: 212x256 grid"), r.output
+
+    common = ["--gallery", gallery, "--cache", cache]
+    r = CliRunner().invoke(main, ["enroll", *enrolled, *common, "--method", "icp", "--jobs", "1"])
+    assert r.exit_code == 1 and "2 failed to enrol" in r.output and missing in r.output, r.output
+    r = CliRunner().invoke(main, ["enroll", *enrolled, *common, "--method", "icp", "--jobs", "1", "--intrinsics",
+                                  str(camera)])
+    assert r.exit_code == 0 and "2 enrolled" in r.output, r.output
+    assert "verification threshold" in r.output and "recorded in" in r.output, r.output  # calibrated on its frames
+
+    for command in (["identify", probe, *common, "--jobs", "1"], ["verify", probe, *common, "--claim", "04200"]):
+        r = CliRunner().invoke(main, command)
+        assert r.exit_code == 2 and r.output.startswith(f"error: {probe}: {missing}"), r.output
+        assert r.output.count("\n") == 1, r.output
+    r = CliRunner().invoke(main, ["identify", probe, *common, "--jobs", "1", "--intrinsics", str(camera)])
+    assert r.exit_code == 0 and r.output.splitlines()[1].split()[:2] == ["1", "04200"], r.output
+    r = CliRunner().invoke(main, ["verify", probe, *common, "--claim", "04200", "--intrinsics", str(camera)])
+    assert r.exit_code in (0, 1) and "claim 04200, score" in r.output, r.output
+
+
+def test_the_client_sends_the_intrinsics_it_is_given(frames, tmp_path):
+    """ux19 item 1, with --server: the frame goes with the --intrinsics file's camera, not only one found beside it."""
+    import shutil
+
+    from facerec3d.client import Client
+
+    frame = tmp_path / "front_1.png"
+    shutil.copy(frames / "04200" / "front_1.png", frame)
+    _, data = Client._scan(frame, "probe")
+    assert "intrinsics" not in data
+    _, data = Client._scan(frame, "probe", frames / "intrinsics.json")
+    assert json.loads(data["intrinsics"]) == json.loads((frames / "intrinsics.json").read_text())
+
+
 def test_a_manifest_of_bosphorus_files_is_read_as_the_bosphorus_folder_would_be(tmp_path):
     """The protocol and subsets of synthetic Bosphorus data do not depend on its manifest.csv being there."""
     from facerec3d.datasets.catalog import open_dataset
