@@ -510,6 +510,57 @@ def test_serve_on_a_port_in_use_is_one_line_before_anything_starts(tmp_path):
     assert not (tmp_path / "g.sqlite").exists()  # refused before the gallery was made
 
 
+def test_serve_holds_its_address_from_the_check_until_uvicorn_serves_on_it(tmp_path, monkeypatch):
+    """ux19 item 2: the address was bound to check it, let go, and bound again by uvicorn after the gallery had
+    loaded: another process could take the port in between. Now the socket bound first is the one uvicorn serves
+    on, listening all along (no other socket can bind the port meanwhile), and a start refused after the check
+    (no key file) lets the port go."""
+    import errno
+    import socket
+
+    pytest.importorskip("fastapi")
+    uvicorn = pytest.importorskip("uvicorn")
+    import facerec3d.server.app as app
+    from facerec3d.server.keys import add_key
+
+    original, bound, served = app.bind_address, [], []
+
+    def bind(host, port):
+        sock = original(host, port)
+        bound.append((sock, sock.getsockname()[1]))
+        return sock
+
+    def taken(port: int) -> bool:
+        """Whether another socket, bound as uvicorn binds (SO_REUSEADDR), is refused the port."""
+        with socket.socket() as other:
+            other.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                other.bind(("127.0.0.1", port))
+            except OSError as e:
+                return e.errno == errno.EADDRINUSE
+            return False
+
+    def run(server, sockets=None):  # instead of serving: what uvicorn is handed, and whether the port is held
+        served.append((sockets, taken(bound[-1][1])))
+
+    monkeypatch.setattr(app, "bind_address", bind)
+    monkeypatch.setattr(uvicorn.Server, "run", run)
+    add_key(tmp_path / "keys.json", "alice", "query")
+    serve = ["serve", "--gallery", str(tmp_path / "g.sqlite"), "--port", "0", "--jobs", "1", "--keys"]
+    r = CliRunner().invoke(main, [*serve, str(tmp_path / "keys.json")])
+    assert r.exit_code == 0, r.output
+    (sock, port), = bound
+    assert served == [([sock], True)]  # the very socket, still bound and listening when uvicorn is given it
+    assert f"on http://127.0.0.1:{port} " in r.output  # port 0: the banner names the port taken
+    assert sock.fileno() == -1 and not taken(port)  # closed after serving
+
+    bound.clear()
+    r = CliRunner().invoke(main, [*serve, str(tmp_path / "missing.json")])
+    assert r.exit_code == 2 and "missing.json" in r.output, r.output
+    (sock, port), = bound
+    assert sock.fileno() == -1 and not taken(port)  # refused after the check: the port let go
+
+
 def _ply(vertices: int, rows: int) -> bytes:
     """A binary PLY whose header promises `vertices` (x, y, z floats) and that holds `rows` of them."""
     head = (f"ply\nformat binary_little_endian 1.0\nelement vertex {vertices}\nproperty float x\nproperty float y\n"
