@@ -161,18 +161,20 @@ def synth(out, subjects, scans, fmt, seed, first_subject, expressions, expressio
 def view(file, output, with_face):
     """Render scan FILE (shaded depth) before and after preprocessing, landmarks marked, to a PNG."""
     from facerec3d.io import load_scan
+    from facerec3d.jit import compilation_notice
     from facerec3d.preprocess import Preprocessor, gridify, landmarks_in_input_frame
     from facerec3d.render import check_image_path, render
 
     check_image_path(output)  # before the work: a format or folder that cannot be written says so at once
-    scan = gridify(load_scan(file))
-    panels = [(f"{Path(file).name} (raw)", scan)]
-    if with_face:
-        with _one_blas_thread():
-            face = Preprocessor()(scan)
-        panels[0] = (panels[0][0], scan.replace(landmarks=landmarks_in_input_frame(face)))
-        panels.append(("preprocessed (frontal, 1 mm grid)", face))
-    render(panels, output)
+    with compilation_notice(lambda line: click.echo(line, err=True)):  # a cold Numba cache: ~30 s, said first
+        scan = gridify(load_scan(file))
+        panels = [(f"{Path(file).name} (raw)", scan)]
+        if with_face:
+            with _one_blas_thread():
+                face = Preprocessor()(scan)
+            panels[0] = (panels[0][0], scan.replace(landmarks=landmarks_in_input_frame(face)))
+            panels.append(("preprocessed (frontal, 1 mm grid)", face))
+        render(panels, output)
     click.echo(f"wrote {output}")
 
 

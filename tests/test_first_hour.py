@@ -432,6 +432,32 @@ def test_view_refuses_an_image_it_cannot_write_before_any_work(frames, tmp_path)
         assert r.output.startswith(f"error: {out}: {reason}"), r.output
 
 
+def test_view_says_it_is_compiling_when_numbas_cache_is_cold(frames, tmp_path, monkeypatch):
+    """ux19 item 3: the first `view` compiled for ~30 s with nothing printed. A cold cache is simulated by a kernel
+    that no cache holds, called as the scan is gridded: one line on stderr says what the wait is (as Numba starts
+    compiling); once compiled, nothing."""
+    import numba
+
+    import facerec3d.preprocess as preprocess
+    from facerec3d.jit import COMPILING
+
+    kernel = numba.njit(cache=False)(lambda x: x + 1)  # new to Numba: compiled on its first call
+    gridify = preprocess.gridify
+
+    def cold_gridify(scan):
+        kernel(1)
+        return gridify(scan)
+
+    monkeypatch.setattr(preprocess, "gridify", cold_gridify)
+    out = tmp_path / "v.png"
+    r = CliRunner().invoke(main, ["view", str(frames / "04200" / "front_1.png"), "--raw", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    assert r.stderr.splitlines().count(COMPILING) == 1 and r.stdout == f"wrote {out}\n", r.output
+    assert COMPILING == "compiling facerec3d's numerical kernels (first run only, ~30 s) ..."
+    r = CliRunner().invoke(main, ["view", str(frames / "04200" / "front_1.png"), "--raw", "-o", str(out)])
+    assert r.exit_code == 0 and COMPILING not in r.output, r.output  # compiled: nothing to say
+
+
 def test_a_missing_output_folder_is_named_not_an_errno(frames, tmp_path):
     out = tmp_path / "no" / "x.ply"
     r = CliRunner().invoke(main, ["convert", str(frames / "04200" / "front_1.png"), str(out)])
