@@ -97,7 +97,8 @@ def info(files, intrinsics):
 @click.argument("dst", type=click.Path(dir_okay=False))
 @friendly
 def convert(src, dst):
-    """Convert scan SRC to DST (.abs, .abs.gz, .bnt, .ply, .npz; format from the name)."""
+    """Convert scan SRC to DST (.abs, .abs.gz, .bnt, .ply, .obj, .npz; format from the name). Every point is
+    kept; an OBJ holds no range-image grid (its points and the grid's triangles), the others keep it."""
     from facerec3d.io import load_scan, save_scan
 
     save_scan(load_scan(src), dst)
