@@ -61,17 +61,24 @@ def main():
     """3D face recognition (Mian & Pears, '3D Face Recognition', 2012): scans, preprocessing, matching, evaluation."""
 
 
+#: --intrinsics, of every command that reads scans given by the user (a missing file is refused before any work).
+_INTRINSICS_OPTION = click.option(
+    "--intrinsics", type=click.Path(exists=True, dir_okay=False), default=None,
+    help="Depth frames: pinhole intrinsics JSON (fx, fy, cx, cy); default: an intrinsics.json beside them.")
+
+
 @main.command()
 @click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@_INTRINSICS_OPTION
 @friendly
-def info(files):
+def info(files, intrinsics):
     """Size, valid points, bounding box and resolution (mm) of scan FILES."""
     from facerec3d.io import load_scan
 
     failed = 0
     for f in files:
         try:
-            s = load_scan(f)
+            s = load_scan(f, intrinsics)
         except FaceRec3DError as e:  # the next file is still looked at
             click.echo(f"error: {e}", err=True)
             failed += 1
@@ -90,7 +97,8 @@ def info(files):
 @click.argument("dst", type=click.Path(dir_okay=False))
 @friendly
 def convert(src, dst):
-    """Convert scan SRC to DST (.abs, .abs.gz, .bnt, .ply, .npz; format from the name)."""
+    """Convert scan SRC to DST (.abs, .abs.gz, .bnt, .ply, .obj, .npz; format from the name). Every point is
+    kept; an OBJ holds no range-image grid (its points and the grid's triangles), the others keep it."""
     from facerec3d.io import load_scan, save_scan
 
     save_scan(load_scan(src), dst)
@@ -154,18 +162,20 @@ def synth(out, subjects, scans, fmt, seed, first_subject, expressions, expressio
 def view(file, output, with_face):
     """Render scan FILE (shaded depth) before and after preprocessing, landmarks marked, to a PNG."""
     from facerec3d.io import load_scan
+    from facerec3d.jit import compilation_notice
     from facerec3d.preprocess import Preprocessor, gridify, landmarks_in_input_frame
     from facerec3d.render import check_image_path, render
 
     check_image_path(output)  # before the work: a format or folder that cannot be written says so at once
-    scan = gridify(load_scan(file))
-    panels = [(f"{Path(file).name} (raw)", scan)]
-    if with_face:
-        with _one_blas_thread():
-            face = Preprocessor()(scan)
-        panels[0] = (panels[0][0], scan.replace(landmarks=landmarks_in_input_frame(face)))
-        panels.append(("preprocessed (frontal, 1 mm grid)", face))
-    render(panels, output)
+    with compilation_notice(lambda line: click.echo(line, err=True)):  # a cold Numba cache: ~30 s, said first
+        scan = gridify(load_scan(file))
+        panels = [(f"{Path(file).name} (raw)", scan)]
+        if with_face:
+            with _one_blas_thread():
+                face = Preprocessor()(scan)
+            panels[0] = (panels[0][0], scan.replace(landmarks=landmarks_in_input_frame(face)))
+            panels.append(("preprocessed (frontal, 1 mm grid)", face))
+        render(panels, output)
     click.echo(f"wrote {output}")
 
 
@@ -182,8 +192,7 @@ LANDMARK_COLUMNS = ("nose_tip", "nose_bridge", "left_eye_inner", "right_eye_inne
 @click.option("--format", "fmt", type=click.Choice(["npz", "ply"]), default="npz", show_default=True)
 @click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", type=click.IntRange(min=1),
               help="Processes to use.")
-@click.option("--intrinsics", type=click.Path(dir_okay=False), default=None,
-              help="Depth frames: pinhole intrinsics JSON (fx, fy, cx, cy); default: an intrinsics.json beside them.")
+@_INTRINSICS_OPTION
 @friendly
 def preprocess(inputs, outdir, overwrite, config_file, fmt, jobs, intrinsics):
     """Preprocess scans INPUTS (files, dataset folders or manifests, as for enroll) into normalised faces in OUT,
@@ -338,9 +347,10 @@ def _client(server, api_key):
     return Client(server, api_key)
 
 
-def _enroll_remote(server, api_key, records, jobs, preprocess_locally=False):
+def _enroll_remote(server, api_key, records, jobs, preprocess_locally=False, intrinsics=None):
     """Upload scans to a service's enrol endpoint (`jobs` at once) and report as the local enrolment does; with
-    `preprocess_locally`, preprocessed here first (a scan without a face fails here, unrecorded by the service)."""
+    `preprocess_locally`, preprocessed here first (a scan without a face fails here, unrecorded by the service);
+    depth frames with the `intrinsics` file when given."""
     from concurrent.futures import ThreadPoolExecutor
 
     from tqdm import tqdm
@@ -350,7 +360,8 @@ def _enroll_remote(server, api_key, records, jobs, preprocess_locally=False):
 
     def one(record):
         try:
-            client.enrol(record.path, record.subject, record.scan_id, preprocess_locally=preprocess_locally)
+            client.enrol(record.path, record.subject, record.scan_id, preprocess_locally=preprocess_locally,
+                         intrinsics=intrinsics)
             return "enrolled"
         except ServiceError as e:
             if e.status == 409:
@@ -433,8 +444,7 @@ def _bootstrap_options(fn):
                    "Experiment 3, all against all over Fall 2003 + Spring 2004, under the ROC I / II / III masks.")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False), help="TOML or JSON preprocessing settings.")
 @_CACHE_OPTION
-@click.option("--intrinsics", type=click.Path(exists=True, dir_okay=False), default=None,
-              help="Depth frames: pinhole intrinsics JSON (fx, fy, cx, cy); default: an intrinsics.json beside them.")
+@_INTRINSICS_OPTION
 @functools.partial(_cascade_options, screens=("depth", "embedding", "keypoints"))
 @_bootstrap_options
 @_engine_options
@@ -480,6 +490,7 @@ def evaluate(data, method, method_config, train, model, out, overwrite, protocol
 @click.option("--subject", help="Subject of scan files whose names do not say it (default: the file stem).")
 @click.option("--gallery-only", is_flag=True, help="Of a dataset, enrol only its protocol's gallery scans.")
 @_CACHE_OPTION
+@_INTRINSICS_OPTION
 @click.option("--calibrate/--no-calibrate", default=True, show_default=True,
               help="After enrolling, calibrate the gallery's verification threshold on its own scans (FMR 1 %; "
                    "see 'gallery STORE calibrate'); a threshold calibrated on scans given for it is kept.")
@@ -487,8 +498,8 @@ def evaluate(data, method, method_config, train, model, out, overwrite, protocol
 @_server_options
 @_edge_option
 @friendly
-def enroll(data, gallery, method, method_config, train, model, config_file, subject, gallery_only, cache, calibrate,
-           jobs, scheduler, server, api_key, preprocess_locally):
+def enroll(data, gallery, method, method_config, train, model, config_file, subject, gallery_only, cache, intrinsics,
+           calibrate, jobs, scheduler, server, api_key, preprocess_locally):
     """Enrol scans DATA (files, dataset folders or manifests) into the gallery store, one transaction each;
     scans that fail are recorded (failures to enrol) and the batch goes on; exit code 1 when every scan failed.
     With --server, upload them to a gallery service (--jobs at once)."""
@@ -497,7 +508,8 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
         from facerec3d.gallery.service import scan_records
 
         with _edge(server, preprocess_locally):
-            return _enroll_remote(server, api_key, scan_records(data, subject, gallery_only), jobs, preprocess_locally)
+            return _enroll_remote(server, api_key, scan_records(data, subject, gallery_only), jobs, preprocess_locally,
+                                  intrinsics)
     from tqdm import tqdm
 
     from facerec3d.config import read_settings
@@ -522,7 +534,8 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
                 if status not in ("enrolled", "skipped"):
                     tqdm.write(f"{source}: failed to enrol: {status}")
 
-            report = enroll_scans(store, records, matcher, config=config, engine=engine, cache=cache, on_result=show)
+            report = enroll_scans(store, records, matcher, config=config, engine=engine, cache=cache,
+                                  intrinsics=intrinsics, on_result=show)
             total = store.stats()["entries"]
         if calibrate and report.enrolled:
             with GalleryStore(gallery) as store:
@@ -534,7 +547,8 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
                     click.echo(f"kept the verification threshold {kept['value']:.4g} calibrated on {kept['data']} "
                                f"(recalibrate: facerec3d gallery {gallery} calibrate ...)")
                 else:
-                    _calibrate_threshold(store, None, 0.01, engine, cache, quiet_if_impossible=True)
+                    _calibrate_threshold(store, None, 0.01, engine, cache, quiet_if_impossible=True,
+                                         intrinsics=intrinsics)
     click.echo(f"{report.enrolled} enrolled, {len(report.skipped)} already enrolled, {len(report.failures)} failed "
                f"to enrol; {gallery}: {total} entries")
     if report.failures and not report.enrolled and not report.skipped:
@@ -558,19 +572,20 @@ def _gallery_matcher(gallery):
 @click.option("--config", "config_file", type=click.Path(dir_okay=False),
               help="Preprocessing settings; must be the gallery's (default: the gallery's).")
 @_CACHE_OPTION
+@_INTRINSICS_OPTION
 @_cascade_options
 @_engine_options
 @_server_options
 @_edge_option
 @friendly
-def identify(probe, gallery, k, config_file, cache, cascade, shortlist, screen, jobs, scheduler, server, api_key,
-             preprocess_locally):
+def identify(probe, gallery, k, config_file, cache, intrinsics, cascade, shortlist, screen, jobs, scheduler, server,
+             api_key, preprocess_locally):
     """The k gallery entries most like scan PROBE, best first (rank, subject, scan, score)."""
     _local_only(server, gallery, "config_file", "cache", "jobs", "scheduler")
     if server:
         with _edge(server, preprocess_locally), _client(server, api_key) as client:
             answer = client.identify(probe, k, cascade, shortlist, preprocess_locally=preprocess_locally,
-                                     screen=screen)
+                                     screen=screen, intrinsics=intrinsics)
         click.echo(f"{'rank':>4}  {'subject':<12}{'scan':<20}{'score':>12}")
         for c in answer["candidates"]:
             click.echo(f"{c['rank']:>4}  {str(c['subject']):<12}{str(c['scan_id']):<20}{c['score']:>12.4f}")
@@ -583,7 +598,7 @@ def identify(probe, gallery, k, config_file, cache, cascade, shortlist, screen, 
     config = PreprocessConfig.load(config_file) if config_file else None
     with _one_blas_thread(), GalleryStore(gallery) as store, Engine.create(jobs, scheduler) as engine:
         hits = identify_scan(store, probe, k=k, cascade=_cascade_config(cascade, shortlist, screen), config=config,
-                             engine=engine, cache=_cache_folder(cache))
+                             engine=engine, cache=_cache_folder(cache), intrinsics=intrinsics)
     click.echo(f"{'rank':>4}  {'subject':<12}{'scan':<20}{'score':>12}")
     for r, (entry, score) in enumerate(hits, start=1):
         click.echo(f"{r:>4}  {str(entry.subject):<12}{str(entry.scan_id):<20}{score:>12.4f}")
@@ -598,15 +613,17 @@ def identify(probe, gallery, k, config_file, cache, cascade, shortlist, screen, 
 @click.option("--config", "config_file", type=click.Path(dir_okay=False),
               help="Preprocessing settings; must be the gallery's (default: the gallery's).")
 @_CACHE_OPTION
+@_INTRINSICS_OPTION
 @_server_options
 @_edge_option
 @friendly
-def verify(probe, gallery, claim, threshold, config_file, cache, server, api_key, preprocess_locally):
+def verify(probe, gallery, claim, threshold, config_file, cache, intrinsics, server, api_key, preprocess_locally):
     """Is scan PROBE the claimed subject? Prints accept/reject with the score; exit code 0 accept, 1 reject."""
     _local_only(server, gallery, "config_file", "cache")
     if server:
         with _edge(server, preprocess_locally), _client(server, api_key) as client:
-            answer = client.verify(probe, claim, threshold, preprocess_locally=preprocess_locally)
+            answer = client.verify(probe, claim, threshold, preprocess_locally=preprocess_locally,
+                                   intrinsics=intrinsics)
         accepted, score, threshold = answer["accepted"], answer["score"], answer["threshold"]
         score = float("nan") if score is None else score
         click.echo(f"{'accept' if accepted else 'reject'}: claim {claim}, score {score:.4f} (threshold {threshold:g})")
@@ -619,7 +636,7 @@ def verify(probe, gallery, claim, threshold, config_file, cache, server, api_key
     given = threshold is not None
     with _one_blas_thread(), GalleryStore(gallery) as store:
         accepted, score, threshold = verify_scan(store, probe, claim, threshold=threshold, config=config,
-                                                 cache=_cache_folder(cache))
+                                                 cache=_cache_folder(cache), intrinsics=intrinsics)
         hint = None if given or store.threshold() is not None else _threshold_hint(store, claim, threshold)
     click.echo(f"{'accept' if accepted else 'reject'}: claim {claim}, score {score:.4f} (threshold {threshold:g})")
     if hint:
@@ -720,13 +737,14 @@ def gallery_remove(store, ident):
     click.echo(f"removed {n} entr{'y' if n == 1 else 'ies'}")
 
 
-def _calibrate_threshold(store, records, fmr, engine, cache, quiet_if_impossible=False) -> None:
-    """Calibrate and record the store's verification threshold; print what was recorded."""
+def _calibrate_threshold(store, records, fmr, engine, cache, quiet_if_impossible=False, intrinsics=None) -> None:
+    """Calibrate and record the store's verification threshold (depth frames read with `intrinsics` when given);
+    print what was recorded."""
     from facerec3d.evaluation.calibrate import calibrate
     from facerec3d.gallery.store import GalleryError
 
     try:
-        r = calibrate(store, records, fmr=fmr, engine=engine, cache=cache)
+        r = calibrate(store, records, fmr=fmr, engine=engine, cache=cache, intrinsics=intrinsics)
     except GalleryError as e:
         if not quiet_if_impossible:
             raise

@@ -86,13 +86,14 @@ class Client:
         return r.text if text else r.json()
 
     @staticmethod
-    def _scan(path: str | os.PathLike, field: str) -> tuple[dict, dict]:
-        """The multipart file of a scan (its name tells the format) and, for a depth frame, its intrinsics."""
+    def _scan(path: str | os.PathLike, field: str, intrinsics: str | os.PathLike | None = None) -> tuple[dict, dict]:
+        """The multipart file of a scan (its name tells the format) and, for a depth frame, its intrinsics: the
+        JSON file `intrinsics` when given, else the intrinsics.json found beside the frame."""
         from facerec3d.io import DEPTH_SUFFIXES, find_intrinsics, scan_suffix
 
         p = Path(path)
         data = {}
-        if scan_suffix(p) in DEPTH_SUFFIXES + (".npy",) and (camera := find_intrinsics(p)) is not None:
+        if scan_suffix(p) in DEPTH_SUFFIXES + (".npy",) and (camera := intrinsics or find_intrinsics(p)) is not None:
             data["intrinsics"] = json.dumps(json.loads(Path(camera).read_text()))
         return {field: (p.name, p.read_bytes(), "application/octet-stream")}, data
 
@@ -119,15 +120,17 @@ class Client:
                                  "(another version?); upload raw scans")
         return Preprocessor(config)
 
-    def _preprocessed(self, path: str | os.PathLike, field: str) -> tuple[dict, dict]:
+    def _preprocessed(self, path: str | os.PathLike, field: str,
+                      intrinsics: str | os.PathLike | None = None) -> tuple[dict, dict]:
         """The multipart file of a scan preprocessed here with the service's settings, as `.npz` named after the
-        scan (so the default scan id is the same); a file that already is a preprocessed face goes as it is.
-        `FaceRec3DError` (e.g. no face found) when it cannot be preprocessed."""
+        scan (so the default scan id is the same); a file that already is a preprocessed face goes as it is; a
+        depth frame is read with `intrinsics` when given. `FaceRec3DError` (e.g. no face found) when it cannot be
+        preprocessed."""
         from facerec3d.io import load_scan, save_scan, scan_stem
         from facerec3d.preprocess.pipeline import preprocessed_with
 
         p = Path(path)
-        scan = load_scan(p)
+        scan = load_scan(p, intrinsics)
         if preprocessed_with(scan) is not None:  # already a face: the service says whether its settings fit
             return {field: (p.name, p.read_bytes(), "application/octet-stream")}, {}
         face = self.preprocessor()(scan)
@@ -137,8 +140,10 @@ class Client:
             data = out.read_bytes()
         return {field: (f"{scan_stem(p)}.npz", data, "application/octet-stream")}, {}
 
-    def _upload(self, path: str | os.PathLike, field: str, preprocess_locally: bool) -> tuple[dict, dict]:
-        return self._preprocessed(path, field) if preprocess_locally else self._scan(path, field)
+    def _upload(self, path: str | os.PathLike, field: str, preprocess_locally: bool,
+                intrinsics: str | os.PathLike | None = None) -> tuple[dict, dict]:
+        return (self._preprocessed(path, field, intrinsics) if preprocess_locally
+                else self._scan(path, field, intrinsics))
 
     @staticmethod
     def _form(**fields: Any) -> dict:
@@ -146,27 +151,29 @@ class Client:
 
     # ------------------------------------------------------------------ the API
     def enrol(self, path: str | os.PathLike, subject: str, scan_id: str | None = None,
-              preprocess_locally: bool = False) -> dict:
+              preprocess_locally: bool = False, intrinsics: str | os.PathLike | None = None) -> dict:
         """Enrol a scan file for a subject: the new entry (id, subject, scan_id, source, ...). ServiceError 409
         when already enrolled, 422 for a failure to enrol (with the reason). `preprocess_locally`: preprocess
-        here and upload the face (see the module's docstring)."""
-        files, data = self._upload(path, "scan", preprocess_locally)
+        here and upload the face (see the module's docstring). `intrinsics`: a depth frame's camera (JSON file;
+        default: the intrinsics.json beside it), here and in `identify` and `verify`."""
+        files, data = self._upload(path, "scan", preprocess_locally, intrinsics)
         return self._call("POST", "/v1/enrol", files, {**data, **self._form(subject=subject, scan_id=scan_id)})
 
     enroll = enrol
 
     def identify(self, path: str | os.PathLike, k: int = 5, cascade: bool = False, shortlist: int = 20,
-                 timeout_s: float | None = None, preprocess_locally: bool = False, screen: str = "depth") -> dict:
+                 timeout_s: float | None = None, preprocess_locally: bool = False, screen: str = "depth",
+                 intrinsics: str | os.PathLike | None = None) -> dict:
         """The k best candidates for a probe scan: {"candidates": [{rank, entry, subject, scan_id, score}], ...}."""
-        files, data = self._upload(path, "probe", preprocess_locally)
+        files, data = self._upload(path, "probe", preprocess_locally, intrinsics)
         headers = {"X-Request-Timeout": str(timeout_s)} if timeout_s else None
         return self._call("POST", "/v1/identify", files,
                           {**data, **self._form(k=k, cascade=cascade, shortlist=shortlist, screen=screen)}, headers)
 
     def verify(self, path: str | os.PathLike, claim: str, threshold: float | None = None,
-               preprocess_locally: bool = False) -> dict:
+               preprocess_locally: bool = False, intrinsics: str | os.PathLike | None = None) -> dict:
         """{"accepted", "score", "threshold", "claim", ...} for a probe scan and a claimed subject."""
-        files, data = self._upload(path, "probe", preprocess_locally)
+        files, data = self._upload(path, "probe", preprocess_locally, intrinsics)
         return self._call("POST", "/v1/verify", files, {**data, **self._form(claim=claim, threshold=threshold)})
 
     def subjects(self) -> list[dict]:

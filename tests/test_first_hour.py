@@ -324,6 +324,61 @@ def test_the_service_takes_intrinsics_as_a_file_part_or_text(frames, tmp_path):
         service.close()
 
 
+def test_frames_without_intrinsics_beside_them_are_read_with_intrinsics(frames, tmp_path):
+    """ux19 item 1: info, enroll, identify and verify take --intrinsics FILE as preprocess and evaluate do. Frames
+    whose intrinsics.json is elsewhere fail with the reason in one line without it, and are read with it (enroll's
+    calibration on the gallery's own frames included)."""
+    import shutil
+
+    shot = tmp_path / "shots"  # no intrinsics.json in it or above it
+    shot.mkdir()
+    for subject, frame, name in (("04200", "front_1", "04200"), ("04201", "front_1", "04201"),
+                                 ("04200", "front_2", "probe")):  # subjects from the file names
+        shutil.copy(frames / subject / f"{frame}.png", shot / f"{name}.png")
+    camera = tmp_path / "kinect.json"
+    shutil.copy(frames / "intrinsics.json", camera)
+    enrolled = [str(shot / "04200.png"), str(shot / "04201.png")]
+    probe, gallery, cache = str(shot / "probe.png"), str(tmp_path / "g.sqlite"), str(tmp_path / "cache")
+    missing = "a depth image needs pinhole intrinsics"
+
+    r = CliRunner().invoke(main, ["info", probe])
+    assert r.exit_code == 2 and r.output.startswith(f"error: {probe}: {missing}") and r.output.count("\n") == 1
+    assert "--intrinsics" in r.output, r.output
+    r = CliRunner().invoke(main, ["info", probe, "--intrinsics", str(camera)])
+    assert r.exit_code == 0 and r.output.startswith(f"{probe}: 212x256 grid"), r.output
+
+    common = ["--gallery", gallery, "--cache", cache]
+    r = CliRunner().invoke(main, ["enroll", *enrolled, *common, "--method", "icp", "--jobs", "1"])
+    assert r.exit_code == 1 and "2 failed to enrol" in r.output and missing in r.output, r.output
+    r = CliRunner().invoke(main, ["enroll", *enrolled, *common, "--method", "icp", "--jobs", "1", "--intrinsics",
+                                  str(camera)])
+    assert r.exit_code == 0 and "2 enrolled" in r.output, r.output
+    assert "verification threshold" in r.output and "recorded in" in r.output, r.output  # calibrated on its frames
+
+    for command in (["identify", probe, *common, "--jobs", "1"], ["verify", probe, *common, "--claim", "04200"]):
+        r = CliRunner().invoke(main, command)
+        assert r.exit_code == 2 and r.output.startswith(f"error: {probe}: {missing}"), r.output
+        assert r.output.count("\n") == 1, r.output
+    r = CliRunner().invoke(main, ["identify", probe, *common, "--jobs", "1", "--intrinsics", str(camera)])
+    assert r.exit_code == 0 and r.output.splitlines()[1].split()[:2] == ["1", "04200"], r.output
+    r = CliRunner().invoke(main, ["verify", probe, *common, "--claim", "04200", "--intrinsics", str(camera)])
+    assert r.exit_code in (0, 1) and "claim 04200, score" in r.output, r.output
+
+
+def test_the_client_sends_the_intrinsics_it_is_given(frames, tmp_path):
+    """ux19 item 1, with --server: the frame goes with the --intrinsics file's camera, not only one found beside it."""
+    import shutil
+
+    from facerec3d.client import Client
+
+    frame = tmp_path / "front_1.png"
+    shutil.copy(frames / "04200" / "front_1.png", frame)
+    _, data = Client._scan(frame, "probe")
+    assert "intrinsics" not in data
+    _, data = Client._scan(frame, "probe", frames / "intrinsics.json")
+    assert json.loads(data["intrinsics"]) == json.loads((frames / "intrinsics.json").read_text())
+
+
 def test_a_manifest_of_bosphorus_files_is_read_as_the_bosphorus_folder_would_be(tmp_path):
     """The protocol and subsets of synthetic Bosphorus data do not depend on its manifest.csv being there."""
     from facerec3d.datasets.catalog import open_dataset
@@ -375,6 +430,32 @@ def test_view_refuses_an_image_it_cannot_write_before_any_work(frames, tmp_path)
         r = CliRunner().invoke(main, ["view", scan, "-o", str(out)])
         assert r.exit_code == 2 and r.output.strip().splitlines() == [r.output.strip()], r.output
         assert r.output.startswith(f"error: {out}: {reason}"), r.output
+
+
+def test_view_says_it_is_compiling_when_numbas_cache_is_cold(frames, tmp_path, monkeypatch):
+    """ux19 item 3: the first `view` compiled for ~30 s with nothing printed. A cold cache is simulated by a kernel
+    that no cache holds, called as the scan is gridded: one line on stderr says what the wait is (as Numba starts
+    compiling); once compiled, nothing."""
+    import numba
+
+    import facerec3d.preprocess as preprocess
+    from facerec3d.jit import COMPILING
+
+    kernel = numba.njit(cache=False)(lambda x: x + 1)  # new to Numba: compiled on its first call
+    gridify = preprocess.gridify
+
+    def cold_gridify(scan):
+        kernel(1)
+        return gridify(scan)
+
+    monkeypatch.setattr(preprocess, "gridify", cold_gridify)
+    out = tmp_path / "v.png"
+    r = CliRunner().invoke(main, ["view", str(frames / "04200" / "front_1.png"), "--raw", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    assert r.stderr.splitlines().count(COMPILING) == 1 and r.stdout == f"wrote {out}\n", r.output
+    assert COMPILING == "compiling facerec3d's numerical kernels (first run only, ~30 s) ..."
+    r = CliRunner().invoke(main, ["view", str(frames / "04200" / "front_1.png"), "--raw", "-o", str(out)])
+    assert r.exit_code == 0 and COMPILING not in r.output, r.output  # compiled: nothing to say
 
 
 def test_a_missing_output_folder_is_named_not_an_errno(frames, tmp_path):
@@ -453,6 +534,57 @@ def test_serve_on_a_port_in_use_is_one_line_before_anything_starts(tmp_path):
     assert r.exit_code == 2, r.output
     assert r.output == f"error: 127.0.0.1:{port}: address already in use\n"
     assert not (tmp_path / "g.sqlite").exists()  # refused before the gallery was made
+
+
+def test_serve_holds_its_address_from_the_check_until_uvicorn_serves_on_it(tmp_path, monkeypatch):
+    """ux19 item 2: the address was bound to check it, let go, and bound again by uvicorn after the gallery had
+    loaded: another process could take the port in between. Now the socket bound first is the one uvicorn serves
+    on, listening all along (no other socket can bind the port meanwhile), and a start refused after the check
+    (no key file) lets the port go."""
+    import errno
+    import socket
+
+    pytest.importorskip("fastapi")
+    uvicorn = pytest.importorskip("uvicorn")
+    import facerec3d.server.app as app
+    from facerec3d.server.keys import add_key
+
+    original, bound, served = app.bind_address, [], []
+
+    def bind(host, port):
+        sock = original(host, port)
+        bound.append((sock, sock.getsockname()[1]))
+        return sock
+
+    def taken(port: int) -> bool:
+        """Whether another socket, bound as uvicorn binds (SO_REUSEADDR), is refused the port."""
+        with socket.socket() as other:
+            other.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                other.bind(("127.0.0.1", port))
+            except OSError as e:
+                return e.errno == errno.EADDRINUSE
+            return False
+
+    def run(server, sockets=None):  # instead of serving: what uvicorn is handed, and whether the port is held
+        served.append((sockets, taken(bound[-1][1])))
+
+    monkeypatch.setattr(app, "bind_address", bind)
+    monkeypatch.setattr(uvicorn.Server, "run", run)
+    add_key(tmp_path / "keys.json", "alice", "query")
+    serve = ["serve", "--gallery", str(tmp_path / "g.sqlite"), "--port", "0", "--jobs", "1", "--keys"]
+    r = CliRunner().invoke(main, [*serve, str(tmp_path / "keys.json")])
+    assert r.exit_code == 0, r.output
+    (sock, port), = bound
+    assert served == [([sock], True)]  # the very socket, still bound and listening when uvicorn is given it
+    assert f"on http://127.0.0.1:{port} " in r.output  # port 0: the banner names the port taken
+    assert sock.fileno() == -1 and not taken(port)  # closed after serving
+
+    bound.clear()
+    r = CliRunner().invoke(main, [*serve, str(tmp_path / "missing.json")])
+    assert r.exit_code == 2 and "missing.json" in r.output, r.output
+    (sock, port), = bound
+    assert sock.fileno() == -1 and not taken(port)  # refused after the check: the port let go
 
 
 def _ply(vertices: int, rows: int) -> bytes:

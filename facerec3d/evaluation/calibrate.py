@@ -47,17 +47,20 @@ def _scores_without(matcher, face, templates, keep: np.ndarray) -> np.ndarray:
 
 
 def calibration_scores(store: GalleryStore, records: Sequence[ScanRecord], *, engine: Engine,
-                       cache: str | Path | None = None, max_scans: int = MAX_SCANS) -> tuple[np.ndarray, np.ndarray, int]:
+                       cache: str | Path | None = None, max_scans: int = MAX_SCANS,
+                       intrinsics: str | Path | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """(genuine scores, impostor scores, scans that failed to acquire) of up to `max_scans` labelled scans against
     every entry of the gallery, leaving out each scan's own entry (same source file). A method whose scores are
     normalised over the gallery (fusion, region ICP) scores each scan against the gallery without its own entry,
-    as a probe from outside it would be (in this process); others on the engine's workers."""
+    as a probe from outside it would be (in this process); others on the engine's workers. Depth frames are read
+    with `intrinsics` (a JSON file) when given, else with the intrinsics.json found beside them."""
     if len(records) > max_scans:
         records = [records[i] for i in np.linspace(0, len(records) - 1, max_scans).round().astype(int)]
     matcher, entries = store.matcher(), store.entries()
     if not entries:
         raise GalleryError(f"{store.path}: empty gallery (nothing enrolled yet)")
-    outcomes = list(engine.preprocess([r.path for r in records], store.preprocess_config(), cache=cache))
+    outcomes = list(engine.preprocess([r.path for r in records], store.preprocess_config(), cache=cache,
+                                      intrinsics=intrinsics))
     kept = [(r, o.face) for r, o in zip(records, outcomes) if o.face is not None]
     genuine: list[float] = []
     impostor: list[float] = []
@@ -95,13 +98,16 @@ def threshold_at_fmr(impostor: np.ndarray, fmr: float) -> float:
 
 
 def calibrate(store: GalleryStore, records: Sequence[ScanRecord] | None = None, *, fmr: float | None = DEFAULT_FMR,
-              engine: Engine, cache: str | Path | None = None, max_scans: int = MAX_SCANS) -> dict:
+              engine: Engine, cache: str | Path | None = None, max_scans: int = MAX_SCANS,
+              intrinsics: str | Path | None = None) -> dict:
     """Calibrate the gallery's verification threshold on labelled scans (default: the gallery's own) and record
     it in the store: the threshold at false-match rate `fmr`, or at the equal error rate when `fmr` is None.
+    Depth frames are read with `intrinsics` when given (as they were enrolled).
     Returns the record: value, rule, pair counts, the EER and the TAR at the threshold where genuine pairs exist."""
     own = records is None
     records = gallery_records(store) if own else list(records)
-    genuine, impostor, failed = calibration_scores(store, records, engine=engine, cache=cache, max_scans=max_scans)
+    genuine, impostor, failed = calibration_scores(store, records, engine=engine, cache=cache, max_scans=max_scans,
+                                                   intrinsics=intrinsics)
     if impostor.size == 0:
         raise GalleryError(f"{store.path}: no impostor pair to calibrate on: the gallery and the calibration scans "
                            "need at least two subjects")

@@ -123,11 +123,12 @@ def content_hash(path: str | Path) -> str | None:
     return digest.hexdigest()
 
 
-def _enrol_one(record: ScanRecord, config: PreprocessConfig, matcher: Matcher,
-               cache: str | None) -> tuple[Template | None, str | None, str | None]:
-    """(template, None, content hash) or (None, reason, content hash) for one scan: preprocess (cached) and enrol."""
+def _enrol_one(record: ScanRecord, config: PreprocessConfig, matcher: Matcher, cache: str | None,
+               intrinsics: str | None = None) -> tuple[Template | None, str | None, str | None]:
+    """(template, None, content hash) or (None, reason, content hash) for one scan: preprocess (cached; a depth
+    frame read with `intrinsics` when given) and enrol."""
     content = content_hash(record.path)
-    outcome = preprocess_file(record.path, config, cache)
+    outcome = preprocess_file(record.path, config, cache, intrinsics)
     if outcome.face is None:
         return None, outcome.error, content
     try:
@@ -140,7 +141,8 @@ def _enrol_one(record: ScanRecord, config: PreprocessConfig, matcher: Matcher,
 
 def enroll_scans(store: GalleryStore, records: Sequence[ScanRecord], matcher: Matcher, *,
                  config: PreprocessConfig = PreprocessConfig(), engine: Engine | None = None,
-                 cache: str | Path | None = None, on_result=None) -> EnrolReport:
+                 cache: str | Path | None = None, intrinsics: str | Path | None = None,
+                 on_result=None) -> EnrolReport:
     """Preprocess and enrol scans into the store, each in its own transaction as soon as it is ready; each scan is
     read, preprocessed and enrolled in one call on the `engine`'s workers.
 
@@ -148,7 +150,8 @@ def enroll_scans(store: GalleryStore, records: Sequence[ScanRecord], matcher: Ma
     an enrolled scan) are skipped, also when another enrolment running at the same time adds them first; a scan
     that cannot be read, preprocessed or enrolled is recorded as a failure to enrol (its latest, until it enrols)
     and the batch goes on. `on_result(source, status)` is called after each scan ("enrolled", "skipped" or the
-    failure reason).
+    failure reason). Depth frames are read with `intrinsics` (a JSON file) when given, else with the
+    intrinsics.json found beside them.
     """
     store.bind(config, matcher)
     report = EnrolReport()
@@ -166,7 +169,8 @@ def enroll_scans(store: GalleryStore, records: Sequence[ScanRecord], matcher: Ma
     own = engine is None
     engine = engine or Engine.create(1)
     try:
-        results = engine.imap(_enrol_one, [r for _, r in todo], config, matcher, None if cache is None else str(cache))
+        results = engine.imap(_enrol_one, [r for _, r in todo], config, matcher, None if cache is None else str(cache),
+                              None if intrinsics is None else str(intrinsics))
         for (source, _), (template, error, content) in zip(todo, results):
             status = "enrolled"
             if template is None:
@@ -189,14 +193,15 @@ def enroll_scans(store: GalleryStore, records: Sequence[ScanRecord], matcher: Ma
 
 
 def load_probe(store: GalleryStore, path: str | Path, config: PreprocessConfig | None = None,
-               cache: str | Path | None = None, *, engine: Engine | None = None) -> FaceScan:
+               cache: str | Path | None = None, *, engine: Engine | None = None,
+               intrinsics: str | Path | None = None) -> FaceScan:
     """A probe scan preprocessed with the gallery's settings (on the `engine`'s workers when given); `config`, if
-    given, must be those settings."""
+    given, must be those settings; a depth frame is read with `intrinsics` (a JSON file) when given."""
     if config is not None:
         store.check_preprocess(config)
     settings = store.preprocess_config()
-    outcome = (preprocess_file(path, settings, cache) if engine is None
-               else list(engine.preprocess([path], settings, cache=cache))[0])
+    outcome = (preprocess_file(path, settings, cache, intrinsics) if engine is None
+               else list(engine.preprocess([path], settings, cache=cache, intrinsics=intrinsics))[0])
     if outcome.face is None:
         raise GalleryError(f"{path}: {outcome.error}")
     return outcome.face
@@ -204,17 +209,17 @@ def load_probe(store: GalleryStore, path: str | Path, config: PreprocessConfig |
 
 def identify_scan(store: GalleryStore, probe: str | Path, *, k: int = 5, cascade: CascadeConfig | None = None,
                   config: PreprocessConfig | None = None, matcher: Matcher | None = None, engine: Engine | None = None,
-                  cache: str | Path | None = None) -> list[tuple[Entry, float]]:
-    """The k best gallery entries for a probe scan, (entry, score) best first; the probe is read, preprocessed
-    and matched on the `engine`'s workers (default: this process). A `matcher` given must be the gallery's
-    (method and options)."""
+                  cache: str | Path | None = None, intrinsics: str | Path | None = None) -> list[tuple[Entry, float]]:
+    """The k best gallery entries for a probe scan, (entry, score) best first; the probe is read (a depth frame
+    with `intrinsics` when given), preprocessed and matched on the `engine`'s workers (default: this process).
+    A `matcher` given must be the gallery's (method and options)."""
     stored = store.matcher()
     if matcher is not None:
         store.check_matcher(matcher)
     own = engine is None
     engine = engine or Engine.create(1)
     try:
-        face = load_probe(store, probe, config, cache, engine=engine)
+        face = load_probe(store, probe, config, cache, engine=engine, intrinsics=intrinsics)
         entries = store.entries()
         if not entries:
             raise GalleryError(f"{store.path}: the gallery is empty")
@@ -228,10 +233,12 @@ def identify_scan(store: GalleryStore, probe: str | Path, *, k: int = 5, cascade
 
 
 def verify_scan(store: GalleryStore, probe: str | Path, claim: str, *, threshold: float | None = None,
-                config: PreprocessConfig | None = None, cache: str | Path | None = None) -> tuple[bool, float, float]:
+                config: PreprocessConfig | None = None, cache: str | Path | None = None,
+                intrinsics: str | Path | None = None) -> tuple[bool, float, float]:
     """(accepted, score, threshold): the probe's best score against the claimed subject's templates, accepted
     when it reaches the threshold (default: the gallery's calibrated one, `gallery_threshold`). Methods whose scores
-    are normalised over the gallery (`matching.base.GalleryNormalised`: `cohort_scores`) score the probe against the whole gallery."""
+    are normalised over the gallery (`matching.base.GalleryNormalised`: `cohort_scores`) score the probe against the whole gallery.
+    A depth frame is read with `intrinsics` (a JSON file) when given."""
     matcher = store.matcher()
     if threshold is None:
         threshold = gallery_threshold(store, matcher.name)
@@ -239,7 +246,7 @@ def verify_scan(store: GalleryStore, probe: str | Path, claim: str, *, threshold
     if not claimed:
         raise GalleryError(f"{store.path}: subject {claim!r} is not enrolled")
     entries = store.entries() if matcher.cohort_scores else store.entries(subject=claim)
-    face = load_probe(store, probe, config, cache)
+    face = load_probe(store, probe, config, cache, intrinsics=intrinsics)
     scores, _ = matcher.scores(matcher.prepare(face), store.templates(entries))
     score = float(max(s for s, e in zip(scores, entries) if e.id in claimed))
     return score >= threshold, score, threshold

@@ -191,8 +191,9 @@ def read_depth_image(path: str | Path, intrinsics: Intrinsics | str | Path | Non
         found = find_intrinsics(path)
         if found is None:
             raise ScanFormatError(path, f"a depth image needs pinhole intrinsics: put an {INTRINSICS_NAME} "
-                                        "(fx, fy, cx, cy in pixels) beside it or in a parent folder (preprocess "
-                                        "and evaluate also take --intrinsics)")
+                                        "(fx, fy, cx, cy in pixels) beside it or in a parent folder (info, "
+                                        "preprocess, evaluate, enroll, identify and verify also take --intrinsics "
+                                        "FILE)")
         intrinsics = found
     if not isinstance(intrinsics, Intrinsics):
         try:

@@ -167,8 +167,29 @@ def write_obj(scan: FaceScan, path: str | Path) -> None:
     Path(path).write_text(text, encoding="utf-8")
 
 
+_OBJ_CORNER_DATA = re.compile(rb"(?m)^[ \t]*v[tn][ \t]")  # a texture coordinate or normal record
+_OBJ_FACE = re.compile(rb"(?m)^([ \t]*f[ \t][^\n]*)")
+_OBJ_INDEX_TAIL = re.compile(rb"/\S*")  # the /vt/vn of a face corner v/vt/vn, v//vn or v/vt
+
+
+def _obj_positions_only(data: bytes) -> bytes:
+    """An OBJ's text without its texture coordinates and normals (facerec3d uses neither): faces of plain vertex
+    indices. With them, trimesh makes one vertex per distinct (vertex, texture, normal) corner of a face, so a
+    vertex no face uses is dropped and one with two texture coordinates is doubled; without them (and with
+    `maintain_order`) it keeps the file's vertices, each once and in order. A file with neither is returned as
+    it is."""
+    if not _OBJ_CORNER_DATA.search(data):
+        return data
+    data = _OBJ_CORNER_DATA.sub(b"#", data)  # the records become comments: line numbers stay
+    return _OBJ_FACE.sub(lambda face: _OBJ_INDEX_TAIL.sub(b"", face.group(1)), data)
+
+
 def read_mesh(path: str | Path) -> FaceScan:
     """An OBJ, OFF or STL mesh or point cloud: its vertices, with vertex colours when the file has them.
+
+    Every vertex of an OBJ is a point, in the file's order, also those no face uses (isolated points: trimesh
+    drops them by default, about 2 % of a range scan written as OBJ, where a point whose neighbours are missing
+    or too far away is in no grid triangle); see `_obj_positions_only`.
 
     Normals are not taken from these files (trimesh does not tell stored from computed ones);
     matchers estimate them from the points. trimesh parses the whole file, so files over MAX_MESH_BYTES are refused
@@ -181,8 +202,11 @@ def read_mesh(path: str | Path) -> FaceScan:
     suffix = Path(path).suffix.lower().lstrip(".")
     data = read_bytes(path, MAX_MESH_BYTES)
     normals = colors = mesh = None
+    options = {"maintain_order": True} if suffix == "obj" else {}  # every vertex, in order (not only faces')
+    if suffix == "obj":
+        data = _obj_positions_only(data)
     with library_errors(path, f"{suffix.upper()} file"):
-        geometry = trimesh.load(io.BytesIO(data), file_type=suffix, process=False)
+        geometry = trimesh.load(io.BytesIO(data), file_type=suffix, process=False, **options)
         if isinstance(geometry, trimesh.Scene):
             parts = geometry.dump()
             points = np.concatenate([np.asarray(g.vertices) for g in parts]) if parts else np.empty((0, 3))

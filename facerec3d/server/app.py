@@ -749,17 +749,24 @@ def create_app(service: Service):
     return Gate(app, service)
 
 
-def check_address(host: str, port: int) -> None:
-    """Refuse an address this process cannot listen on (in use, not this machine's) with an OSError naming
-    host:port (`error: 127.0.0.1:8000: address already in use` on the command line), bound as uvicorn binds it
-    and let go again."""
-    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as sock:
+def bind_address(host: str, port: int) -> socket.socket:
+    """A socket bound to host:port and listening, for uvicorn to serve on (`uvicorn.Server.run(sockets=[...])`):
+    the address is held from this check until the service answers, so no other process can take it in between
+    (binding to check and letting go, then binding again in uvicorn, left that gap). Connections that arrive
+    while the gallery loads wait in the backlog and are answered once the service is up. An address this process
+    cannot listen on (in use, not this machine's) is refused with an OSError naming host:port (`error:
+    127.0.0.1:8000: address already in use` on the command line). SO_REUSEADDR as uvicorn sets it: a port whose
+    earlier connections linger in TIME_WAIT can be listened on again at once."""
+    sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
+    try:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            sock.bind((host, port))
-        except OSError as e:
-            e.filename = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
-            raise
+        sock.bind((host, port))
+        sock.listen()  # listening: another socket cannot bind the address, SO_REUSEADDR or not
+    except OSError as e:
+        sock.close()
+        e.filename = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+        raise
+    return sock
 
 
 def serve(gallery: str | Path, keys: str | Path, host: str = "127.0.0.1", port: int = 8000, jobs: int | None = None,
@@ -767,28 +774,34 @@ def serve(gallery: str | Path, keys: str | Path, host: str = "127.0.0.1", port: 
           settings: ServiceSettings | None = None, max_points: int = 5_000_000, audit: str | Path | None = None,
           ssl_certfile: str | None = None, ssl_keyfile: str | None = None, echo=print) -> None:
     """Load the gallery into `jobs` worker processes (or a Dask cluster's workers) and answer HTTP on host:port
-    until interrupted (SIGINT / SIGTERM: in-flight requests finish, the workers stop). An address that cannot be
-    listened on (one in use) is refused first, with an OSError naming it."""
+    until interrupted (SIGINT / SIGTERM: in-flight requests finish, the workers stop). The address is bound first
+    and held until uvicorn serves on that very socket (`bind_address`): one in use is refused before anything
+    loads, with an OSError naming it. Port 0 takes a free port, which the banner names."""
     import uvicorn
 
     from facerec3d.preprocess.batch import one_thread_per_process
     from facerec3d.server.live import AuditLog
 
     settings = settings or ServiceSettings()
-    check_address(host, port)  # before the gallery loads and the banner says the service is up
-    key_file = KeyFile(keys)  # refuse to start without keys
-    one_thread_per_process()  # the service's own BLAS: one thread (work runs on the workers)
-    live = LiveGallery(gallery, jobs, scheduler, method, options, config,
-                       AuditLog(audit if audit is not None else Path(str(gallery) + ".audit.jsonl")), max_points)
-    service = Service(live, key_file, settings)
+    sock = bind_address(host, port)  # before the gallery loads and the banner says the service is up
     try:
-        server = uvicorn.Server(uvicorn.Config(create_app(service), host=host, port=port, log_level="warning",
-                                               access_log=False, ssl_certfile=ssl_certfile, ssl_keyfile=ssl_keyfile,
-                                               timeout_graceful_shutdown=max(5, int(settings.timeout_s))))
-        scheme = "https" if ssl_certfile else "http"
-        echo(f"facerec3d service: {gallery} ({len(live.entries)} entries, method {live.matcher.name}, "
-             f"{live.engine.workers} worker{'s' * (live.engine.workers != 1)}) on {scheme}://{host}:{port} "
-             f"(API docs: /docs)")
-        server.run()
+        port = sock.getsockname()[1]
+        key_file = KeyFile(keys)  # refuse to start without keys
+        one_thread_per_process()  # the service's own BLAS: one thread (work runs on the workers)
+        live = LiveGallery(gallery, jobs, scheduler, method, options, config,
+                           AuditLog(audit if audit is not None else Path(str(gallery) + ".audit.jsonl")), max_points)
+        service = Service(live, key_file, settings)
+        try:
+            server = uvicorn.Server(uvicorn.Config(create_app(service), host=host, port=port, log_level="warning",
+                                                   access_log=False, ssl_certfile=ssl_certfile,
+                                                   ssl_keyfile=ssl_keyfile,
+                                                   timeout_graceful_shutdown=max(5, int(settings.timeout_s))))
+            scheme = "https" if ssl_certfile else "http"
+            echo(f"facerec3d service: {gallery} ({len(live.entries)} entries, method {live.matcher.name}, "
+                 f"{live.engine.workers} worker{'s' * (live.engine.workers != 1)}) on {scheme}://{host}:{port} "
+                 f"(API docs: /docs)")
+            server.run(sockets=[sock])  # the socket bound above, held all along
+        finally:
+            service.close()
     finally:
-        service.close()
+        sock.close()  # uvicorn closes it on shutdown; here also when loading failed
