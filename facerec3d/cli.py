@@ -763,13 +763,14 @@ def _calibrate_threshold(store, records, fmr, engine, cache, quiet_if_impossible
               "subjects).")
 @click.option("--subject", help="Subject of scan files whose names do not say it.")
 @_CACHE_OPTION
+@_INTRINSICS_OPTION
 @_engine_options
 @click.pass_obj
 @friendly
-def gallery_calibrate(store, data, fmr, eer, subject, cache, jobs, scheduler):
+def gallery_calibrate(store, data, fmr, eer, subject, cache, intrinsics, jobs, scheduler):
     """Calibrate the verification threshold of STORE on labelled scans DATA of its own sensor (files, dataset
     folders or manifests; default: the scans it was enrolled from) and record it: verify and the service use it
-    whenever no threshold is given."""
+    whenever no threshold is given. Depth frames enrolled with --intrinsics need it here too."""
     from facerec3d.gallery.engine import Engine
     from facerec3d.gallery.service import scan_records
     from facerec3d.gallery.store import GalleryStore
@@ -778,7 +779,7 @@ def gallery_calibrate(store, data, fmr, eer, subject, cache, jobs, scheduler):
         raise click.UsageError("calibrate a gallery store file, not a service")
     records = scan_records(data, subject) if data else None
     with Engine.create(jobs, scheduler) as engine, GalleryStore(store) as s:
-        _calibrate_threshold(s, records, None if eer else fmr, engine, _cache_folder(cache))
+        _calibrate_threshold(s, records, None if eer else fmr, engine, _cache_folder(cache), intrinsics=intrinsics)
 
 
 @gallery.command("stats")

@@ -53,7 +53,8 @@ def calibration_scores(store: GalleryStore, records: Sequence[ScanRecord], *, en
     every entry of the gallery, leaving out each scan's own entry (same source file). A method whose scores are
     normalised over the gallery (fusion, region ICP) scores each scan against the gallery without its own entry,
     as a probe from outside it would be (in this process); others on the engine's workers. Depth frames are read
-    with `intrinsics` (a JSON file) when given, else with the intrinsics.json found beside them."""
+    with `intrinsics` (a JSON file) when given, else with the intrinsics.json found beside them. GalleryError
+    with the first reason when no scan can be read and preprocessed (e.g. depth frames without their intrinsics)."""
     if len(records) > max_scans:
         records = [records[i] for i in np.linspace(0, len(records) - 1, max_scans).round().astype(int)]
     matcher, entries = store.matcher(), store.entries()
@@ -62,6 +63,9 @@ def calibration_scores(store: GalleryStore, records: Sequence[ScanRecord], *, en
     outcomes = list(engine.preprocess([r.path for r in records], store.preprocess_config(), cache=cache,
                                       intrinsics=intrinsics))
     kept = [(r, o.face) for r, o in zip(records, outcomes) if o.face is not None]
+    if records and not kept:  # else "no impostor pair" would hide why
+        raise GalleryError(f"{store.path}: none of the {len(records)} calibration scans could be used; "
+                           f"{outcomes[0].path}: {outcomes[0].error}")
     genuine: list[float] = []
     impostor: list[float] = []
     if kept:
