@@ -528,14 +528,16 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
         if matcher is None:
             matcher, _ = trained_matcher(method or DEFAULT_METHOD, options, train=train, model=model, workers=engine,
                                          cache=cache, config=config)
-        with GalleryStore(gallery, create=True) as store, tqdm(total=len(records), unit="scan", desc="enrolling") as bar:
-            def show(source, status):
-                bar.update()
-                if status not in ("enrolled", "skipped"):
-                    tqdm.write(f"{source}: failed to enrol: {status}")
+        with GalleryStore(gallery, create=True) as store:
+            _note_new_method(store, matcher)
+            with tqdm(total=len(records), unit="scan", desc="enrolling") as bar:
+                def show(source, status):
+                    bar.update()
+                    if status not in ("enrolled", "skipped"):
+                        tqdm.write(f"{source}: failed to enrol: {status}")
 
-            report = enroll_scans(store, records, matcher, config=config, engine=engine, cache=cache,
-                                  intrinsics=intrinsics, on_result=show)
+                report = enroll_scans(store, records, matcher, config=config, engine=engine, cache=cache,
+                                      intrinsics=intrinsics, on_result=show)
             total = store.stats()["entries"]
         if calibrate and report.enrolled:
             with GalleryStore(gallery) as store:
@@ -553,6 +555,14 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
                f"to enrol; {gallery}: {total} entries")
     if report.failures and not report.enrolled and not report.skipped:
         sys.exit(1)  # nothing succeeded
+
+
+def _note_new_method(store, matcher) -> None:
+    """One line on stderr when a gallery with no entries takes another method than the one an earlier enrolment
+    recorded (all its scans failed, or every entry was removed): the store takes this enrolment's settings."""
+    st = store.stats()
+    if not st["entries"] and st["method"] not in (None, matcher.name):
+        click.echo(f"{store.path}: no entries yet: method {matcher.name} replaces {st['method']}", err=True)
 
 
 def _gallery_matcher(gallery):

@@ -402,6 +402,30 @@ def test_a_gallery_of_frames_enrolled_with_intrinsics_recalibrates_with_them(fra
     assert option["calibrate"].help == option["enroll"].help  # the same help as the other commands'
 
 
+def test_a_failed_first_enrolment_does_not_tie_the_new_gallery_to_its_method(frames, tmp_path):
+    """cal19 item 3: every frame of a first enrolment fails (no intrinsics); enrolling them again with another
+    method, here the default, works without deleting the store, which takes that method."""
+    import shutil
+
+    from facerec3d.config import DEFAULT_METHOD
+    from facerec3d.gallery.store import GalleryStore
+
+    shot = tmp_path / "shots"  # no intrinsics.json in it or above it
+    shot.mkdir()
+    for subject in ("04200", "04201"):
+        shutil.copy(frames / subject / "front_1.png", shot / f"{subject}.png")
+    scans = [str(shot / "04200.png"), str(shot / "04201.png")]
+    common = ["--gallery", str(tmp_path / "g.sqlite"), "--cache", str(tmp_path / "cache"), "--jobs", "1"]
+    r = CliRunner().invoke(main, ["enroll", *scans, *common, "--method", "icp"])
+    assert r.exit_code == 1 and "0 enrolled, 0 already enrolled, 2 failed to enrol" in r.output, r.output
+    r = CliRunner().invoke(main, ["enroll", *scans, *common, "--intrinsics", str(frames / "intrinsics.json")])
+    assert r.exit_code == 0 and "2 enrolled" in r.output, r.output
+    assert f"no entries yet: method {DEFAULT_METHOD} replaces icp" in r.output, r.output
+    with GalleryStore(tmp_path / "g.sqlite") as store:
+        st = store.stats()
+    assert st["method"] == DEFAULT_METHOD and st["entries"] == 2 and st["failures_to_enrol"] == 0
+
+
 def test_the_client_sends_the_intrinsics_it_is_given(frames, tmp_path):
     """ux19 item 1, with --server: the frame goes with the --intrinsics file's camera, not only one found beside it."""
     import shutil
