@@ -532,6 +532,11 @@ class GalleryStore:
         return {r[0] for r in self._db.execute("SELECT source FROM entries")}
 
     @_sqlite_errors
+    def contents(self) -> dict[int, str | None]:
+        """Each entry's content hash (SHA-256 of the scan file or upload it was enrolled from), by entry id."""
+        return dict(self._db.execute("SELECT id, content FROM entries"))
+
+    @_sqlite_errors
     def entries(self, subject: str | None = None) -> list[Entry]:
         """Entries in enrolment order (of one subject when given)."""
         sql = "SELECT id, subject, scan_id, source, nbytes, enrolled_at FROM entries"
