@@ -347,21 +347,31 @@ def _client(server, api_key):
     return Client(server, api_key)
 
 
-def _enroll_remote(server, api_key, records, jobs, preprocess_locally=False, intrinsics=None):
+def _enroll_remote(server, api_key, records, jobs, preprocess_locally=False, intrinsics=None, calibrate=True):
     """Upload scans to a service's enrol endpoint (`jobs` at once) and report as the local enrolment does; with
     `preprocess_locally`, preprocessed here first (a scan without a face fails here, unrecorded by the service);
-    depth frames with the `intrinsics` file when given."""
+    depth frames with the `intrinsics` file when given. With `calibrate`, once some scan was enrolled, the
+    service's threshold is calibrated on this enrolment's scans that its gallery holds (`_calibrate_remote`), as
+    a local enrolment calibrates on the gallery's own scans."""
     from concurrent.futures import ThreadPoolExecutor
 
     from tqdm import tqdm
 
     from facerec3d.client import ServiceError
     from facerec3d.errors import FaceRec3DError
+    from facerec3d.evaluation.calibrate import calibration_selection
+
+    chosen = {id(r) for r in calibration_selection(records)}  # the scans a calibration would score
+    sent = {}  # with preprocess_locally, the faces sent for them: calibrated on as the very bytes enrolled
 
     def one(record):
         try:
-            client.enrol(record.path, record.subject, record.scan_id, preprocess_locally=preprocess_locally,
-                         intrinsics=intrinsics)
+            scan = record.path
+            if preprocess_locally:
+                scan = client.upload(record.path, preprocess_locally=True, intrinsics=intrinsics)
+                if id(record) in chosen:
+                    sent[id(record)] = scan
+            client.enrol(scan, record.subject, record.scan_id, intrinsics=intrinsics)
             return "enrolled"
         except ServiceError as e:
             if e.status == 409:
@@ -373,6 +383,7 @@ def _enroll_remote(server, api_key, records, jobs, preprocess_locally=False, int
             return f"{getattr(e, 'reason', e)} (preprocessed locally)"
 
     counts = {"enrolled": 0, "skipped": 0, "failed": 0}
+    held = []  # the chosen scans the gallery holds (enrolled now or before)
     with _client(server, api_key) as client, ThreadPoolExecutor(max(1, min(jobs, 8))) as pool, \
             tqdm(total=len(records), unit="scan", desc="enrolling") as bar:
         if preprocess_locally:
@@ -381,12 +392,56 @@ def _enroll_remote(server, api_key, records, jobs, preprocess_locally=False, int
             bar.update()
             if status in counts:
                 counts[status] += 1
+                if id(record) in chosen:
+                    held.append(record)
             else:
                 counts["failed"] += 1
                 tqdm.write(f"{record.path}: failed to enrol: {status}")
-        total = client.stats()["entries"]
+    with _client(server, api_key) as client:
+        st = client.stats()
+        if calibrate and counts["enrolled"]:
+            _calibrate_own_remote(client, st, [sent.get(id(r), r.path) for r in held], [r.subject for r in held],
+                                  intrinsics)
     click.echo(f"{counts['enrolled']} enrolled, {counts['skipped']} already enrolled, {counts['failed']} failed "
-               f"to enrol; {server}: {total} entries")
+               f"to enrol; {server}: {st['entries']} entries")
+
+
+def _calibrate_own_remote(client, stats, scans, subjects, intrinsics) -> None:
+    """After an enrolment through the service: calibrate its threshold on the enrolled scans, as the local
+    enrolment does on the gallery's own (FMR 1 %), unless the threshold was calibrated on scans given for it
+    (kept, as locally); a calibration that fails or is refused (e.g. a key without the admin scope) is said in
+    one line, the enrolment stands."""
+    from facerec3d.evaluation.calibrate import OWN_SCANS
+
+    kept = stats.get("threshold")
+    if kept is not None and kept.get("data") != OWN_SCANS:
+        click.echo(f"kept the verification threshold {kept['value']:.4g} calibrated on {kept['data']} (recalibrate: "
+                   f"facerec3d gallery --server {client.url} calibrate SCANS ...)")
+        return
+    if not scans:  # (more than 100 scans, and those a calibration would score all failed)
+        click.echo("verification threshold not calibrated: none of the scans it would score is in the gallery")
+        return
+    try:
+        _calibrate_remote(client, stats, scans, subjects, 0.01, own=True, intrinsics=intrinsics)
+    except (FaceRec3DError, OSError) as e:
+        click.echo(f"verification threshold not calibrated: {e}")
+
+
+def _calibrate_remote(client, stats, scans, subjects, fmr, own=False, intrinsics=None) -> None:
+    """Calibrate a service's threshold on labelled scans (paths, or `ScanUpload`s as they were sent), in one
+    request: an even selection of them that fits the service's upload limit (from its `stats`); print the
+    record as a local calibration does."""
+    from facerec3d.client import ScanUpload
+    from facerec3d.evaluation.calibrate import calibration_selection
+
+    sizes = [len(s.data) if isinstance(s, ScanUpload) else Path(s).stat().st_size for s in scans]
+    budget = 0.9 * stats.get("limits", {}).get("max_upload_bytes", float("inf")) - 4096  # (multipart's own bytes)
+    chosen = list(range(len(scans)))
+    while len(chosen) > 2 and sum(sizes[i] + 1024 for i in chosen) > budget:
+        chosen = calibration_selection(range(len(scans)), len(chosen) - 1)
+    r = client.calibrate([scans[i] for i in chosen], [subjects[i] for i in chosen], fmr, own=own,
+                         intrinsics=intrinsics)
+    click.echo(_threshold_line(r, client.url))
 
 
 def _print_metrics(m: dict) -> None:
@@ -509,7 +564,7 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
 
         with _edge(server, preprocess_locally):
             return _enroll_remote(server, api_key, scan_records(data, subject, gallery_only), jobs, preprocess_locally,
-                                  intrinsics)
+                                  intrinsics, calibrate)
     from tqdm import tqdm
 
     from facerec3d.config import read_settings
@@ -528,14 +583,16 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
         if matcher is None:
             matcher, _ = trained_matcher(method or DEFAULT_METHOD, options, train=train, model=model, workers=engine,
                                          cache=cache, config=config)
-        with GalleryStore(gallery, create=True) as store, tqdm(total=len(records), unit="scan", desc="enrolling") as bar:
-            def show(source, status):
-                bar.update()
-                if status not in ("enrolled", "skipped"):
-                    tqdm.write(f"{source}: failed to enrol: {status}")
+        with GalleryStore(gallery, create=True) as store:
+            _note_new_method(store, matcher)
+            with tqdm(total=len(records), unit="scan", desc="enrolling") as bar:
+                def show(source, status):
+                    bar.update()
+                    if status not in ("enrolled", "skipped"):
+                        tqdm.write(f"{source}: failed to enrol: {status}")
 
-            report = enroll_scans(store, records, matcher, config=config, engine=engine, cache=cache,
-                                  intrinsics=intrinsics, on_result=show)
+                report = enroll_scans(store, records, matcher, config=config, engine=engine, cache=cache,
+                                      intrinsics=intrinsics, on_result=show)
             total = store.stats()["entries"]
         if calibrate and report.enrolled:
             with GalleryStore(gallery) as store:
@@ -553,6 +610,14 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
                f"to enrol; {gallery}: {total} entries")
     if report.failures and not report.enrolled and not report.skipped:
         sys.exit(1)  # nothing succeeded
+
+
+def _note_new_method(store, matcher) -> None:
+    """One line on stderr when a gallery with no entries takes another method than the one an earlier enrolment
+    recorded (all its scans failed, or every entry was removed): the store takes this enrolment's settings."""
+    st = store.stats()
+    if not st["entries"] and st["method"] not in (None, matcher.name):
+        click.echo(f"{store.path}: no entries yet: method {matcher.name} replaces {st['method']}", err=True)
 
 
 def _gallery_matcher(gallery):
@@ -689,6 +754,17 @@ def gallery(ctx, store, server, api_key):
     ctx.meta["facerec3d.server"] = (server, api_key)
 
 
+def _service_side_only(*names) -> None:
+    """With `gallery --server`: refuse the options NAMES of the command that were given (they are the service's)."""
+    from click.core import ParameterSource
+
+    ctx = click.get_current_context()
+    opts = {p.name: p.opts[0] for p in ctx.command.params}
+    given = [opts[n] for n in names if ctx.get_parameter_source(n) not in (None, ParameterSource.DEFAULT)]
+    if given:
+        raise click.UsageError(f"{', '.join(given)} cannot be used with --server (the service has its own).")
+
+
 def _remote_gallery():
     """A client of the service `gallery --server URL` names, or None for a local store."""
     server, api_key = click.get_current_context().meta["facerec3d.server"]
@@ -750,9 +826,15 @@ def _calibrate_threshold(store, records, fmr, engine, cache, quiet_if_impossible
             raise
         click.echo(f"verification threshold not calibrated: {e}")
         return
+    click.echo(_threshold_line(r, store.path))
+
+
+def _threshold_line(r: dict, where) -> str:
+    """What a calibration recorded, in one line: the threshold, its rule and pairs, its data and where."""
     extra = f", TAR {r['tar']:.1%} on {r['genuine_pairs']} genuine pairs" if "tar" in r else ""
-    click.echo(f"verification threshold {r['value']:.4g} ({r['rule']}: FMR {r['fmr']:.2%} on {r['impostor_pairs']} "
-               f"impostor pairs{extra}; {r['data']}) recorded in {store.path}")
+    failed = f", {r['failed_scans']} of {r['scans']} scans unusable" if r.get("failed_scans") else ""
+    return (f"verification threshold {r['value']:.4g} ({r['rule']}: FMR {r['fmr']:.2%} on {r['impostor_pairs']} "
+            f"impostor pairs{extra}; {r['data']}{failed}) recorded in {where}")
 
 
 @gallery.command("calibrate")
@@ -763,22 +845,32 @@ def _calibrate_threshold(store, records, fmr, engine, cache, quiet_if_impossible
               "subjects).")
 @click.option("--subject", help="Subject of scan files whose names do not say it.")
 @_CACHE_OPTION
+@_INTRINSICS_OPTION
 @_engine_options
 @click.pass_obj
 @friendly
-def gallery_calibrate(store, data, fmr, eer, subject, cache, jobs, scheduler):
+def gallery_calibrate(store, data, fmr, eer, subject, cache, intrinsics, jobs, scheduler):
     """Calibrate the verification threshold of STORE on labelled scans DATA of its own sensor (files, dataset
     folders or manifests; default: the scans it was enrolled from) and record it: verify and the service use it
-    whenever no threshold is given."""
+    whenever no threshold is given. Depth frames enrolled with --intrinsics need it here too. With --server, the
+    service's gallery on DATA, sent to it (it keeps no scans); needs an admin key."""
+    from facerec3d.evaluation.calibrate import calibration_selection
     from facerec3d.gallery.engine import Engine
     from facerec3d.gallery.service import scan_records
     from facerec3d.gallery.store import GalleryStore
 
-    if _remote_gallery() is not None:
-        raise click.UsageError("calibrate a gallery store file, not a service")
+    if (client := _remote_gallery()) is not None:
+        _service_side_only("cache", "jobs", "scheduler")
+        if not data:
+            raise click.UsageError("with --server, give the scans DATA to calibrate on (the service keeps no scans)")
+        records = calibration_selection(scan_records(data, subject))
+        with client:
+            _calibrate_remote(client, client.stats(), [r.path for r in records], [r.subject for r in records],
+                              None if eer else fmr, intrinsics=intrinsics)
+        return
     records = scan_records(data, subject) if data else None
     with Engine.create(jobs, scheduler) as engine, GalleryStore(store) as s:
-        _calibrate_threshold(s, records, None if eer else fmr, engine, _cache_folder(cache))
+        _calibrate_threshold(s, records, None if eer else fmr, engine, _cache_folder(cache), intrinsics=intrinsics)
 
 
 @gallery.command("stats")

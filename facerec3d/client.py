@@ -5,6 +5,7 @@
         c.enrol("04200d74.abs.gz", subject="04200")               # -> {"id": 17, "subject": "04200", ...}
         c.identify("probe.abs.gz", k=5, cascade=True)["candidates"]
         c.verify("probe.abs.gz", claim="04200")["accepted"]
+        c.calibrate(["04200d74.abs.gz", "04201d80.abs.gz"], ["04200", "04201"], own=True)  # the threshold's record
 
 Errors of the service raise `ServiceError` (with `status` and the service's `reason`); a service that cannot
 be reached raises it too (status 0). Busy answers (429, 503) are retried after their Retry-After, a few times.
@@ -24,6 +25,8 @@ import os
 import tempfile
 import threading
 import time
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +41,17 @@ class ServiceError(FaceRec3DError):
     def __init__(self, status: int, reason: str):
         self.status, self.reason = status, reason
         super().__init__(f"service error {status}: {reason}" if status else reason)
+
+
+@dataclass(frozen=True)
+class ScanUpload:
+    """A scan as it is sent to the service (`Client.upload`): its file name (which tells the format and the default
+    scan id), its bytes (the scan, or the face preprocessed here) and form fields (a depth frame's intrinsics).
+    `enrol` and `calibrate` take one where they take a path: the same bytes sent twice are the same scan."""
+
+    name: str
+    data: bytes
+    fields: dict
 
 
 class Client:
@@ -66,7 +80,7 @@ class Client:
         self.close()
 
     # ------------------------------------------------------------------ plumbing
-    def _call(self, method: str, path: str, files: dict | None = None, data: dict | None = None,
+    def _call(self, method: str, path: str, files: dict | list | None = None, data: dict | None = None,
               headers: dict | None = None, text: bool = False) -> Any:
         for attempt in range(self.retries + 1):
             try:
@@ -149,15 +163,24 @@ class Client:
     def _form(**fields: Any) -> dict:
         return {k: (str(v).lower() if isinstance(v, bool) else str(v)) for k, v in fields.items() if v is not None}
 
-    # ------------------------------------------------------------------ the API
-    def enrol(self, path: str | os.PathLike, subject: str, scan_id: str | None = None,
-              preprocess_locally: bool = False, intrinsics: str | os.PathLike | None = None) -> dict:
-        """Enrol a scan file for a subject: the new entry (id, subject, scan_id, source, ...). ServiceError 409
-        when already enrolled, 422 for a failure to enrol (with the reason). `preprocess_locally`: preprocess
-        here and upload the face (see the module's docstring). `intrinsics`: a depth frame's camera (JSON file;
-        default: the intrinsics.json beside it), here and in `identify` and `verify`."""
+    def upload(self, path: str | os.PathLike, preprocess_locally: bool = False,
+               intrinsics: str | os.PathLike | None = None) -> ScanUpload:
+        """A scan file as `enrol` sends it: its bytes with a depth frame's intrinsics, or (`preprocess_locally`)
+        the face preprocessed here. Kept, it can be enrolled and later calibrated on as the very same bytes."""
         files, data = self._upload(path, "scan", preprocess_locally, intrinsics)
-        return self._call("POST", "/v1/enrol", files, {**data, **self._form(subject=subject, scan_id=scan_id)})
+        name, content, _ = files["scan"]
+        return ScanUpload(name, content, data)
+
+    # ------------------------------------------------------------------ the API
+    def enrol(self, path: str | os.PathLike | ScanUpload, subject: str, scan_id: str | None = None,
+              preprocess_locally: bool = False, intrinsics: str | os.PathLike | None = None) -> dict:
+        """Enrol a scan file (or a `ScanUpload`) for a subject: the new entry (id, subject, scan_id, source, ...).
+        ServiceError 409 when already enrolled, 422 for a failure to enrol (with the reason). `preprocess_locally`:
+        preprocess here and upload the face (see the module's docstring). `intrinsics`: a depth frame's camera
+        (JSON file; default: the intrinsics.json beside it), here and in `identify`, `verify` and `calibrate`."""
+        scan = path if isinstance(path, ScanUpload) else self.upload(path, preprocess_locally, intrinsics)
+        return self._call("POST", "/v1/enrol", {"scan": (scan.name, scan.data, "application/octet-stream")},
+                          {**scan.fields, **self._form(subject=subject, scan_id=scan_id)})
 
     enroll = enrol
 
@@ -175,6 +198,21 @@ class Client:
         """{"accepted", "score", "threshold", "claim", ...} for a probe scan and a claimed subject."""
         files, data = self._upload(path, "probe", preprocess_locally, intrinsics)
         return self._call("POST", "/v1/verify", files, {**data, **self._form(claim=claim, threshold=threshold)})
+
+    def calibrate(self, scans: Sequence[str | os.PathLike | ScanUpload], subjects: Sequence[str],
+                  fmr: float | None = 0.01, own: bool = False, preprocess_locally: bool = False,
+                  intrinsics: str | os.PathLike | None = None) -> dict:
+        """Calibrate the gallery's verification threshold on labelled scans (files or `ScanUpload`s, with their
+        subjects; at most 100, in one request within the service's upload limit) at false-match rate `fmr`, or
+        at the equal error rate when `fmr` is None; `own`: they are the scans the gallery was enrolled from. Each
+        is scored without the entry enrolled from the same bytes. Returns the threshold's record, committed."""
+        uploads = [s if isinstance(s, ScanUpload) else self.upload(s, preprocess_locally, intrinsics) for s in scans]
+        form: dict[str, Any] = {"subject": [str(s) for s in subjects], **self._form(fmr=fmr, eer=fmr is None, own=own)}
+        cameras = [u.fields.get("intrinsics") for u in uploads]
+        if any(cameras):
+            form["intrinsics"] = [camera or "null" for camera in cameras]
+        files = [("scan", (u.name, u.data, "application/octet-stream")) for u in uploads]
+        return self._call("POST", "/v1/calibrate", files, form)["threshold"]
 
     def subjects(self) -> list[dict]:
         """[{"subject", "entries"}] of the gallery."""

@@ -151,3 +151,75 @@ def test_enrolling_more_keeps_a_threshold_calibrated_on_scans_given_for_it(kinec
     assert run.exit_code == 0 and "recorded in" in run.output, run.output
     with GalleryStore(own) as store:
         assert store.threshold()["entries"] == before["entries"] + 1
+
+
+def test_enrolling_through_the_service_calibrates_its_gallery_as_a_local_calibration_does(kinect, tmp_path,
+                                                                                          monkeypatch):
+    """cal19 item 1: `enroll --server` ends by calibrating the service's gallery (a new one: the default method,
+    normalised over the gallery) on the scans of the enrolment it holds, sent to POST /v1/calibrate since the
+    service keeps only templates; admin keys only (an enrol-only key's enrolment stands, uncalibrated, in one
+    line). The store then holds the threshold a local calibration of the same gallery on those scans gives, and
+    the service verifies with it; `gallery --server URL calibrate SCANS` does the same on scans given for it."""
+    import sqlite3
+
+    pytest.importorskip("fastapi")
+    pytest.importorskip("httpx")
+    from fastapi.testclient import TestClient
+
+    import facerec3d.cli as cli
+    from facerec3d.client import Client
+    from facerec3d.config import DEFAULT_METHOD
+    from facerec3d.server.app import Service, ServiceSettings, create_app
+    from facerec3d.server.keys import KeyFile, add_key
+    from facerec3d.server.live import AuditLog, LiveGallery
+
+    people = sorted({r.subject for r in scan_records([kinect])})[:3]
+    records = [r for r in scan_records([kinect]) if r.subject in people]  # 3 people x 3 scans
+    paths = [str(r.path) for r in records]
+    gallery, keys, url = tmp_path / "g.sqlite", tmp_path / "keys.json", "http://testserver"
+    admin, desk = add_key(keys, "admin", "enrol,query,admin"), add_key(keys, "desk", "enrol")
+    service = Service(LiveGallery(gallery, 1, audit=AuditLog(None)), KeyFile(keys), ServiceSettings(timeout_s=600))
+    app = create_app(service)
+
+    def in_process(server, api_key):  # the CLI's client, talking to the service in this process
+        client = Client(server, api_key)
+        client._http.close()
+        client._http = TestClient(app, base_url=server, headers=client._http.headers)
+        return client
+
+    monkeypatch.setattr(cli, "_client", in_process)
+    try:
+        run = CliRunner(env={"FACEREC3D_API_KEY": desk}).invoke(main, ["enroll", *paths[:-1], "--server", url,
+                                                                       "--jobs", "1"])
+        assert run.exit_code == 0 and "8 enrolled, 0 already enrolled, 0 failed" in run.output, run.output
+        assert "verification threshold not calibrated: service error 403: key 'desk' has no 'admin' scope" \
+            in run.output, run.output
+        with GalleryStore(gallery) as store:
+            assert store.threshold() is None and store.stats()["method"] == DEFAULT_METHOD
+        run = CliRunner(env={"FACEREC3D_API_KEY": admin}).invoke(main, ["enroll", *paths, "--server", url,
+                                                                        "--jobs", "1"])
+        assert run.exit_code == 0 and "1 enrolled, 8 already enrolled" in run.output, run.output
+        assert f"; {OWN_SCANS}) recorded in {url}" in run.output, run.output  # on all 9: those it held too
+        with GalleryStore(gallery) as store:
+            remote = store.threshold()
+        assert remote["data"] == OWN_SCANS and remote["scans"] == 9 and remote["entries"] == 9
+        assert f"verification threshold {remote['value']:.4g} (fmr=0.01" in run.output
+        probe = records[1].path  # the service verifies with the threshold it recorded
+        answer = in_process(url, admin).verify(probe, claim=records[1].subject)
+        assert answer["threshold"] == remote["value"]
+        run = CliRunner(env={"FACEREC3D_API_KEY": admin}).invoke(
+            main, ["gallery", "--server", url, "calibrate", *paths, "--fmr", "0.05"])
+        assert run.exit_code == 0 and f"; calibration scans) recorded in {url}" in run.output, run.output
+        with GalleryStore(gallery) as store:
+            given = store.threshold()
+    finally:
+        service.close()
+    copy = tmp_path / "copy.sqlite"  # a local calibration of the same gallery on the same scans
+    with sqlite3.connect(gallery) as source, sqlite3.connect(copy) as target:
+        source.backup(target)
+    for fmr, theirs in ((0.01, remote), (0.05, given)):
+        with GalleryStore(copy) as store, Engine.create(1) as engine:
+            local = calibrate(store, records, fmr=fmr, engine=engine)
+        same = ("value", "rule", "fmr", "impostor_pairs", "genuine_pairs", "tar", "eer", "scans", "entries")
+        assert {k: local[k] for k in same} == {k: theirs[k] for k in same}
+        assert local["genuine_pairs"] == 9 * 2  # each scan's own entry left out (by its bytes: no file behind it)

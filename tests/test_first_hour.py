@@ -365,6 +365,67 @@ def test_frames_without_intrinsics_beside_them_are_read_with_intrinsics(frames, 
     assert r.exit_code in (0, 1) and "claim 04200, score" in r.output, r.output
 
 
+def test_a_gallery_of_frames_enrolled_with_intrinsics_recalibrates_with_them(frames, tmp_path):
+    """cal19 item 2: `gallery G calibrate` takes --intrinsics as enroll does, so a gallery of frames whose
+    intrinsics.json is elsewhere calibrates again on its own frames; without it, one line says why it cannot."""
+    import shutil
+
+    from facerec3d.gallery.store import GalleryStore
+
+    shot = tmp_path / "shots"  # no intrinsics.json in it or above it
+    shot.mkdir()
+    for subject in ("04200", "04201"):
+        shutil.copy(frames / subject / "front_1.png", shot / f"{subject}.png")
+    camera = tmp_path / "kinect.json"
+    shutil.copy(frames / "intrinsics.json", camera)
+    gallery, cache = str(tmp_path / "g.sqlite"), str(tmp_path / "cache")
+    r = CliRunner().invoke(main, ["enroll", str(shot / "04200.png"), str(shot / "04201.png"), "--gallery", gallery,
+                                  "--cache", cache, "--method", "icp",
+                                  "--jobs", "1", "--intrinsics", str(camera)])
+    assert r.exit_code == 0 and "2 enrolled" in r.output, r.output
+
+    r = CliRunner().invoke(main, ["gallery", gallery, "calibrate", "--fmr", "0.5", "--jobs", "1", "--cache", cache])
+    assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
+    assert r.output.startswith(f"error: {gallery}: none of the 2 calibration scans could be used; "
+                               f"{shot / '04200.png'}: a depth image needs pinhole intrinsics"), r.output
+    with GalleryStore(gallery) as store:
+        assert store.threshold()["rule"].startswith("fmr=0.01")  # enroll's, untouched
+    r = CliRunner().invoke(main, ["gallery", gallery, "calibrate", "--fmr", "0.5", "--jobs", "1", "--cache", cache,
+                                  "--intrinsics", str(camera)])
+    assert r.exit_code == 0 and "(fmr=0.5:" in r.output and f"recorded in {gallery}" in r.output, r.output
+    with GalleryStore(gallery) as store:
+        record = store.threshold()
+    assert record["rule"] == "fmr=0.5" and record["impostor_pairs"] == 2 and record["failed_scans"] == 0
+    option = {name: next(p for p in command.params if p.name == "intrinsics")
+              for name, command in (("enroll", main.commands["enroll"]),
+                                    ("calibrate", main.commands["gallery"].commands["calibrate"]))}
+    assert option["calibrate"].help == option["enroll"].help  # the same help as the other commands'
+
+
+def test_a_failed_first_enrolment_does_not_tie_the_new_gallery_to_its_method(frames, tmp_path):
+    """cal19 item 3: every frame of a first enrolment fails (no intrinsics); enrolling them again with another
+    method, here the default, works without deleting the store, which takes that method."""
+    import shutil
+
+    from facerec3d.config import DEFAULT_METHOD
+    from facerec3d.gallery.store import GalleryStore
+
+    shot = tmp_path / "shots"  # no intrinsics.json in it or above it
+    shot.mkdir()
+    for subject in ("04200", "04201"):
+        shutil.copy(frames / subject / "front_1.png", shot / f"{subject}.png")
+    scans = [str(shot / "04200.png"), str(shot / "04201.png")]
+    common = ["--gallery", str(tmp_path / "g.sqlite"), "--cache", str(tmp_path / "cache"), "--jobs", "1"]
+    r = CliRunner().invoke(main, ["enroll", *scans, *common, "--method", "icp"])
+    assert r.exit_code == 1 and "0 enrolled, 0 already enrolled, 2 failed to enrol" in r.output, r.output
+    r = CliRunner().invoke(main, ["enroll", *scans, *common, "--intrinsics", str(frames / "intrinsics.json")])
+    assert r.exit_code == 0 and "2 enrolled" in r.output, r.output
+    assert f"no entries yet: method {DEFAULT_METHOD} replaces icp" in r.output, r.output
+    with GalleryStore(tmp_path / "g.sqlite") as store:
+        st = store.stats()
+    assert st["method"] == DEFAULT_METHOD and st["entries"] == 2 and st["failures_to_enrol"] == 0
+
+
 def test_the_client_sends_the_intrinsics_it_is_given(frames, tmp_path):
     """ux19 item 1, with --server: the frame goes with the --intrinsics file's camera, not only one found beside it."""
     import shutil

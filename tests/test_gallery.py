@@ -73,6 +73,32 @@ def test_round_trip_settings_and_removal(tmp_path):
         GalleryStore(tmp_path / "junk.sqlite")
 
 
+def test_a_gallery_with_no_entries_takes_new_settings(tmp_path):
+    """cal19 item 3: a store whose first enrolment failed (no entry, a failure recorded) takes another enrolment's
+    settings, dropping the old ones' learnt arrays and threshold; a store object still on the old settings can add
+    nothing (no store holds templates of two methods); once it has an entry, other settings are refused as before."""
+    path = tmp_path / "g.sqlite"
+    with GalleryStore(path, create=True) as store:
+        store.bind(PreprocessConfig(), ICPMatcher())
+        store.add_failure("/data/bad.abs", "no face found")
+        store.set_threshold({"value": -2.5, "rule": "fmr=0.01"})  # (as entries since removed left it)
+    other = ICPMatcher(ICPConfig(variant="point-to-plane"))
+    with GalleryStore(path) as stale, GalleryStore(path) as store:
+        store.bind(PreprocessConfig(crop_radius_mm=70.0), other)
+        assert store.matcher().options() == other.options() and store.threshold() is None
+        assert store.preprocess_config() == PreprocessConfig(crop_radius_mm=70.0)
+        assert store.failures() == [("/data/bad.abs", "no face found")]
+        with pytest.raises(GalleryError, match="settings were replaced .* by another enrolment"):
+            stale.add(big_template(0), "/data/0.abs")
+        store.add(big_template(0), "/data/0.abs")
+        store.bind(PreprocessConfig(crop_radius_mm=70.0), other)  # the same settings: accepted
+        with pytest.raises(GalleryError, match="enrolled with method 'icp'"):
+            store.bind(PreprocessConfig(crop_radius_mm=70.0), ICPMatcher())
+        assert store.remove("s0") == 1
+        store.bind(PreprocessConfig(), ICPMatcher())  # empty again: new settings once more
+        assert store.matcher().options() == ICPMatcher().options()
+
+
 WRITER = """
 import sys
 sys.path.insert(0, {tests!r})

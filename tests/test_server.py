@@ -280,11 +280,11 @@ def test_bad_uploads_are_4xx_json_and_the_service_keeps_serving(setup):
     assert not Path("/tmp/evil.npz").exists()
     openapi = call(setup, "GET", "/openapi.json", key=None).json()
     assert {"/v1/enrol", "/v1/identify", "/v1/verify", "/v1/subjects", "/v1/subjects/{ident}", "/v1/health",
-            "/v1/stats", "/v1/entries", "/metrics"} <= set(openapi["paths"])
+            "/v1/stats", "/v1/entries", "/v1/calibrate", "/metrics"} <= set(openapi["paths"])
     fields = {f for name, schema in openapi["components"]["schemas"].items() if name.startswith("Body_")
               for f in schema["properties"]}
     assert fields == {"scan", "probe", "subject", "scan_id", "format", "intrinsics", "k", "cascade", "shortlist",
-                      "screen", "claim", "threshold"}  # nothing names a file on the service
+                      "screen", "claim", "threshold", "fmr", "eer", "own"}  # nothing names a file on the service
     # the failures to enrol were recorded, the service still answers
     listed = call(setup, "GET", "/v1/entries").json()
     assert len(listed["failures"]) >= len(corrupt) and all(f["source"].startswith("upload:") for f in listed["failures"])

@@ -8,6 +8,12 @@ scores labelled scans of the gallery's own sensor against the gallery, the scan 
 the store the threshold at a chosen false-match rate (FMR, the operating point access control sets), or at the
 equal error rate; `verify` and the service then use it whenever no threshold is given.
 
+A scan's own entry is the one enrolled from the same file or from the same bytes (entries record their scan's
+SHA-256): a copy of an enrolled scan, or a scan uploaded to the service (`facerec3d serve`, whose entries have no
+file), is left out of its own comparisons as the original is. The service calibrates the same way on scans its
+client sends (`POST /v1/calibrate`: `enroll --server` sends those it enrolled), scoring them against its live
+gallery (`server.live.LiveGallery.calibration_scores`), with the rule of `threshold_record`.
+
 With one scan per subject, as galleries usually are, only impostor pairs exist: the threshold at an FMR needs
 nothing else (the score above which `fmr` of the impostor comparisons lie; with fewer than 1 / `fmr` pairs, as
 a gallery of ten people has, just above the highest of them, which the record says); the equal error rate needs
@@ -24,6 +30,7 @@ import numpy as np
 
 from facerec3d.datasets.catalog import ScanRecord
 from facerec3d.gallery.engine import Engine
+from facerec3d.gallery.service import content_hash
 from facerec3d.gallery.store import GalleryError, GalleryStore
 from facerec3d.evaluation.metrics import _eer, roc
 
@@ -38,6 +45,13 @@ def gallery_records(store: GalleryStore) -> list[ScanRecord]:
             if Path(e.source).is_file()]
 
 
+def calibration_selection(records: Sequence, max_scans: int = MAX_SCANS) -> list:
+    """The records a calibration scores: all of them, or an even selection of `max_scans` (first and last kept)."""
+    if len(records) <= max_scans:
+        return list(records)
+    return [records[i] for i in np.linspace(0, len(records) - 1, max_scans).round().astype(int)]
+
+
 def _scores_without(matcher, face, templates, keep: np.ndarray) -> np.ndarray:
     """The face's scores against the templates where `keep` (NaN elsewhere), normalised over those alone."""
     scores = np.full(len(templates), np.nan)
@@ -50,24 +64,30 @@ def calibration_scores(store: GalleryStore, records: Sequence[ScanRecord], *, en
                        cache: str | Path | None = None, max_scans: int = MAX_SCANS,
                        intrinsics: str | Path | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """(genuine scores, impostor scores, scans that failed to acquire) of up to `max_scans` labelled scans against
-    every entry of the gallery, leaving out each scan's own entry (same source file). A method whose scores are
+    every entry of the gallery, leaving out each scan's own entry (same source file, or same bytes). A method whose scores are
     normalised over the gallery (fusion, region ICP) scores each scan against the gallery without its own entry,
     as a probe from outside it would be (in this process); others on the engine's workers. Depth frames are read
-    with `intrinsics` (a JSON file) when given, else with the intrinsics.json found beside them."""
-    if len(records) > max_scans:
-        records = [records[i] for i in np.linspace(0, len(records) - 1, max_scans).round().astype(int)]
+    with `intrinsics` (a JSON file) when given, else with the intrinsics.json found beside them. GalleryError
+    with the first reason when no scan can be read and preprocessed (e.g. depth frames without their intrinsics)."""
+    records = calibration_selection(records, max_scans)
     matcher, entries = store.matcher(), store.entries()
     if not entries:
         raise GalleryError(f"{store.path}: empty gallery (nothing enrolled yet)")
     outcomes = list(engine.preprocess([r.path for r in records], store.preprocess_config(), cache=cache,
                                       intrinsics=intrinsics))
     kept = [(r, o.face) for r, o in zip(records, outcomes) if o.face is not None]
+    if records and not kept:  # else "no impostor pair" would hide why
+        raise GalleryError(f"{store.path}: none of the {len(records)} calibration scans could be used; "
+                           f"{outcomes[0].path}: {outcomes[0].error}")
     genuine: list[float] = []
     impostor: list[float] = []
     if kept:
         subjects = np.array([str(e.subject) for e in entries])
         sources = np.array([str(Path(e.source).resolve()) for e in entries])
-        others = [sources != str(Path(r.path).resolve()) for r, _ in kept]
+        stored = store.contents()
+        contents = np.array([stored.get(e.id) or "" for e in entries])
+        others = [(sources != str(Path(r.path).resolve())) & (contents != (content_hash(r.path) or "-"))
+                  for r, _ in kept]
         templates = store.templates(entries)
         if matcher.cohort_scores:  # normalised over the gallery: scored without its own entry, as a new probe is
             results = [_scores_without(matcher, face, templates, other) for (_, face), other in zip(kept, others)]
@@ -108,12 +128,27 @@ def calibrate(store: GalleryStore, records: Sequence[ScanRecord] | None = None, 
     records = gallery_records(store) if own else list(records)
     genuine, impostor, failed = calibration_scores(store, records, engine=engine, cache=cache, max_scans=max_scans,
                                                    intrinsics=intrinsics)
+    try:
+        record = threshold_record(genuine, impostor, fmr, scans=min(len(records), max_scans), failed=failed,
+                                  data=OWN_SCANS if own else "calibration scans", entries=len(store.entries()))
+    except ValueError as e:
+        raise GalleryError(f"{store.path}: {e}") from None
+    store.set_threshold(record)
+    return record
+
+
+def threshold_record(genuine: np.ndarray, impostor: np.ndarray, fmr: float | None, *, scans: int, failed: int,
+                     data: str, entries: int) -> dict:
+    """The threshold record of calibration scores (what `calibrate` records, and the service for its gallery): the
+    threshold at false-match rate `fmr`, or at the equal error rate when `fmr` is None, with how it was chosen;
+    `scans` scored (`failed` of them unusable), `data` what they were, `entries` the gallery's size. ValueError
+    (the reason) when the scores cannot give one."""
     if impostor.size == 0:
-        raise GalleryError(f"{store.path}: no impostor pair to calibrate on: the gallery and the calibration scans "
-                           "need at least two subjects")
+        raise ValueError("no impostor pair to calibrate on: the gallery and the calibration scans need at least two "
+                         "subjects")
     if fmr is None and genuine.size == 0:
-        raise GalleryError(f"{store.path}: the equal error rate needs genuine pairs (a second scan of some enrolled "
-                           "subjects); give them, or calibrate at a false-match rate")
+        raise ValueError("the equal error rate needs genuine pairs (a second scan of some enrolled subjects); give "
+                         "them, or calibrate at a false-match rate")
     rule = "eer" if fmr is None else f"fmr={fmr:g}"
     if fmr is None:
         fmrs, tars, thresholds = roc(genuine, impostor)
@@ -127,11 +162,9 @@ def calibrate(store: GalleryStore, records: Sequence[ScanRecord] | None = None, 
         value = float(np.min(finite, initial=0.0))
     record = {"value": value, "rule": rule,
               "fmr": float(np.mean(impostor >= value)), "impostor_pairs": int(impostor.size),
-              "genuine_pairs": int(genuine.size), "scans": min(len(records), max_scans), "failed_scans": failed,
-              "data": OWN_SCANS if own else "calibration scans", "entries": len(store.entries()),
-              "calibrated_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+              "genuine_pairs": int(genuine.size), "scans": scans, "failed_scans": failed, "data": data,
+              "entries": entries, "calibrated_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     if genuine.size:
         record["tar"] = float(np.mean(genuine >= value))
         record["eer"] = float(_eer(*roc(genuine, impostor)[:2])[0])
-    store.set_threshold(record)
     return record

@@ -227,6 +227,18 @@ class ShardedGallery:
             out.append(GalleryScores(scores, np.zeros_like(scores) if tiebreak is None else tiebreak))
         return out
 
+    def scores_without(self, probe: Probe, left_out: Sequence[int]) -> np.ndarray:
+        """A prepared probe's scores against the gallery without the entries at gallery indices `left_out` (NaN
+        there), normalised over the others alone by a method that normalises over the gallery: as if those were
+        not enrolled (calibration leaves a scan's own entry out, evaluation.calibrate)."""
+        rows = np.concatenate(self.per_shard([[(_shard_scores, probe.prepared)] * self.shards])[0], axis=-1)
+        keep = np.ones(rows.shape[-1], dtype=bool)
+        keep[np.asarray(left_out, dtype=np.int64)] = False
+        scores = np.full(rows.shape[-1], np.nan)
+        if keep.any():
+            scores[keep] = merge_shard_scores(self.matcher, rows[:, keep])[0]
+        return scores
+
     def scores_at_many(self, probes: Sequence[Probe], indices: Sequence[Sequence[int]]) -> list[GalleryScores]:
         """(scores, tiebreak) of each prepared probe against the entries at its gallery indices, in increasing
         index order (a shortlist; a claimed subject's entries, for verification)."""

@@ -9,6 +9,7 @@ the failures to enrol (ISO/IEC 19795-1 FTE).
 Schema (stdlib sqlite3, WAL journal, foreign keys on):
   meta(key, value)                       "format", "preprocess" (PreprocessConfig.fingerprint()),
                                          "method", "options" (JSON), "state" (JSON attrs of a learnt matcher),
+                                         "binding" (a random id of those settings, new each time they are set),
                                          "threshold" (JSON: the calibrated verification threshold, if any)
   entries(id, subject, scan_id, source UNIQUE, content UNIQUE, method, attrs JSON, nbytes, enrolled_at, checksum)
   arrays(entry → entries.id ON DELETE CASCADE, name, dtype, shape JSON, data BLOB, checksum)
@@ -19,6 +20,9 @@ the SHA-256 of all three, checked on reading (as is each entry's, of its subject
 attributes), so damaged bytes are refused, naming the entry, rather than matched; templates are also checked
 for what compiled matching relies on (matching.checks). `content` is the SHA-256 of the scan file an entry was
 enrolled from: the same scan under another path is a duplicate.
+The settings are recorded by the first enrolment; while the store holds no entry (every scan of that enrolment
+failed, or all were removed) another enrolment may replace them (`bind`), and a store object opened on the old
+settings can then add nothing more, so a store never holds templates of two methods.
 Each enrolment (an entry and its arrays) is one transaction, so a crash or kill mid-enrolment leaves every
 earlier enrolment intact and the file readable (SQLite rolls the unfinished one back on the next open).
 A new store file (and SQLite's -wal and -shm files beside it, which take its mode) is made with mode 0600.
@@ -245,6 +249,7 @@ class GalleryStore:
             elif fmt != FORMAT:
                 raise GalleryError(f"{self.path}: gallery format {fmt!r}, this version reads {FORMAT!r}")
             self._check_key()
+            self._binding = self._meta("binding")  # the settings this object enrols under (see `bind`)
         except (sqlite3.DatabaseError, GalleryError) as e:
             if hasattr(self, "_db"):
                 self._db.close()
@@ -379,20 +384,45 @@ class GalleryStore:
     # ------------------------------------------------------------------ settings
     @_sqlite_errors
     def bind(self, preprocess: PreprocessConfig, matcher: Matcher) -> None:
-        """Record the preprocessing and matcher settings in a new store, or check that they are the stored ones."""
+        """Record the preprocessing and matcher settings in a new store, or check that they are the stored ones.
+        A store with no entries takes other settings as a new one would (a first enrolment whose every scan
+        failed does not tie the store to its method): the old settings, learnt arrays and calibrated threshold
+        (in the old method's scores) are replaced; the failures to enrol stay."""
         with self._transaction():  # one writer at a time: two enrolments into a new store bind it once
-            if self._meta("method") is None:
-                arrays, attrs = matcher.state()
-                self._db.executemany("INSERT INTO meta VALUES (?, ?)", [
-                    ("preprocess", preprocess.fingerprint()), ("method", matcher.name),
-                    ("options", json.dumps(matcher.options(), sort_keys=True)),
-                    ("state", json.dumps(attrs, sort_keys=True))])
-                self._db.executemany("INSERT INTO model_arrays VALUES (?, ?, ?, ?, ?)",
-                                     [self._stored(encode_array(a), "model_arrays", None, name)
-                                      for name, a in arrays.items()])
+            if self._meta("method") is None or not self._has_entries() and not self._same(preprocess, matcher):
+                self._record_settings(preprocess, matcher)
                 return
+            self._binding = self._meta("binding")
         self.check_preprocess(preprocess)
         self.check_matcher(matcher)
+
+    def _has_entries(self) -> bool:
+        return self._db.execute("SELECT EXISTS (SELECT 1 FROM entries)").fetchone()[0] == 1
+
+    def _same(self, preprocess: PreprocessConfig, matcher: Matcher) -> bool:
+        """Whether these are the stored settings (damaged ones are not)."""
+        try:
+            self.check_preprocess(preprocess)
+            self.check_matcher(matcher)
+        except (GalleryError, ValueError):
+            return False
+        return True
+
+    def _record_settings(self, preprocess: PreprocessConfig, matcher: Matcher) -> None:
+        """(in a transaction) Replace the store's settings, learnt arrays and threshold with these, under a new
+        binding id: store objects that enrolled under the old one can add no more (`add`)."""
+        arrays, attrs = matcher.state()
+        self._db.execute("DELETE FROM meta WHERE key IN ('preprocess', 'method', 'options', 'state', 'binding', "
+                         "'threshold')")
+        self._db.execute("DELETE FROM model_arrays")
+        self._binding = secrets.token_hex(16)
+        self._db.executemany("INSERT INTO meta VALUES (?, ?)", [
+            ("preprocess", preprocess.fingerprint()), ("method", matcher.name),
+            ("options", json.dumps(matcher.options(), sort_keys=True)),
+            ("state", json.dumps(attrs, sort_keys=True)), ("binding", self._binding)])
+        self._db.executemany("INSERT INTO model_arrays VALUES (?, ?, ?, ?, ?)",
+                             [self._stored(encode_array(a), "model_arrays", None, name)
+                              for name, a in arrays.items()])
 
     @_sqlite_errors
     def preprocess_config(self) -> PreprocessConfig:
@@ -470,6 +500,9 @@ class GalleryStore:
         id. `content`: a hash of the scan file's bytes. AlreadyEnrolled when the source, or the content, is."""
         encoded = {name: encode_array(a) for name, a in template.arrays.items()}
         with self._transaction():
+            if self._meta("binding") != self._binding:  # an empty store was given other settings meanwhile
+                raise GalleryError(f"{self.path}: the gallery's settings were replaced (now method "
+                                   f"{self._meta('method')!r}) by another enrolment while it was empty; enrol again")
             twin = self._db.execute("SELECT id, source FROM entries WHERE source = ? OR content = ?",
                                     (source, content)).fetchone()
             if twin is not None:
@@ -497,6 +530,11 @@ class GalleryStore:
     def sources(self) -> set[str]:
         """The sources (file paths) already enrolled."""
         return {r[0] for r in self._db.execute("SELECT source FROM entries")}
+
+    @_sqlite_errors
+    def contents(self) -> dict[int, str | None]:
+        """Each entry's content hash (SHA-256 of the scan file or upload it was enrolled from), by entry id."""
+        return dict(self._db.execute("SELECT id, content FROM entries"))
 
     @_sqlite_errors
     def entries(self, subject: str | None = None) -> list[Entry]:

@@ -14,6 +14,11 @@ Each request has a time limit (`timeout_s`, or less with an `X-Request-Timeout: 
 the answer is 504 and work not yet started is dropped; an enrolment that has begun committing is waited
 for, so an answer never contradicts the store. Errors are one-line JSON: {"error": reason, "status": code}.
 
+The verification threshold is calibrated on scans sent for it (`POST /v1/calibrate`, admin: `facerec3d enroll
+--server` sends those it enrolled, since the service keeps no scan, only templates), scored against the live
+gallery on a snapshot, each without the entry enrolled from the same bytes, and recorded in the store before the
+answer, as `facerec3d gallery G calibrate` does for a store file (evaluation.calibrate).
+
 An upload may be a raw scan (preprocessed here) or a face already preprocessed by facerec3d with the gallery's
 settings (an `.npz` recording the same `preprocess_fingerprint` as /v1/stats), taken as it is: answers say
 which ("preprocessed_upload"), /v1/stats counts both; a face preprocessed with other settings is 422 (jobs.py).
@@ -43,10 +48,11 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import JSONResponse, PlainTextResponse
 
 from facerec3d.errors import FaceRec3DError, ScanFormatError
+from facerec3d.evaluation.calibrate import MAX_SCANS, OWN_SCANS, threshold_record
 from facerec3d.gallery.cascade import CascadeConfig
 from facerec3d.gallery.store import Entry, GalleryError
 from facerec3d.io import SUPPORTED_SUFFIXES, Intrinsics, scan_stem, scan_suffix
-from facerec3d.server.jobs import Rejected, Upload, enrol_job, probe_job
+from facerec3d.server.jobs import Mismatch, Rejected, Upload, enrol_job, probe_job
 from facerec3d.server.keys import KeyFile
 from facerec3d.server.live import Conflict, LiveGallery, NotFound, WorkerLost
 
@@ -194,7 +200,8 @@ class Lane:
 
 #: the lane of each endpoint that does scan work or changes the gallery, by (method, endpoint label)
 LANES = {("POST", f"{API}/identify"): "query", ("POST", f"{API}/verify"): "query",
-         ("POST", f"{API}/enrol"): "write", ("DELETE", f"{API}/subjects/{{ident}}"): "write"}
+         ("POST", f"{API}/enrol"): "write", ("DELETE", f"{API}/subjects/{{ident}}"): "write",
+         ("POST", f"{API}/calibrate"): "write"}
 
 
 class FailedAuthLog:
@@ -278,7 +285,8 @@ def route_of(method: str, path: str) -> tuple[str, str | None]:
     """(endpoint label for metrics, scope needed: a scope name, "any" for any valid key, None for none)."""
     fixed = {("POST", f"{API}/enrol"): "enrol", ("POST", f"{API}/identify"): "query",
              ("POST", f"{API}/verify"): "query", ("GET", f"{API}/subjects"): "admin",
-             ("GET", f"{API}/entries"): "admin", ("GET", f"{API}/stats"): "any", ("GET", "/metrics"): "admin"}
+             ("GET", f"{API}/entries"): "admin", ("GET", f"{API}/stats"): "any", ("GET", "/metrics"): "admin",
+             ("POST", f"{API}/calibrate"): "admin"}
     if (method, path) in fixed:
         return path, fixed[method, path]
     if path == f"{API}/health":
@@ -582,6 +590,55 @@ def _verify(job: Job, live: LiveGallery, received: Received, claim: str, thresho
             "method": live.matcher.name, "gallery_version": version, "preprocessed_upload": given, "timings": timings}
 
 
+def _cameras(intrinsics: list[str] | None, n: int) -> list[str | None]:
+    """Each of `n` calibration scans' intrinsics (JSON text or None): none given, one for all, or one per scan
+    ("null" for a scan without); ApiError 422 for another count."""
+    given = [None if text.strip() in ("", "null") else text for text in intrinsics or []]
+    if len(given) > 1 and len(given) != n:
+        raise ApiError(422, f"{len(given)} intrinsics for {n} scans: give one for all of them, or one per scan "
+                            "('null' for a scan without)")
+    return given if len(given) > 1 else (given or [None]) * n
+
+
+def _calibration_probe(job: Job, live: LiveGallery, received: Received) -> tuple[Any, str | None, str]:
+    """(a calibration scan prepared as a probe, or None and the reason it cannot be used; the SHA-256 of its
+    bytes, which its own entry records). A face preprocessed with other settings refuses the whole request."""
+    job.check()
+    upload = received.read()
+    content = hashlib.sha256(upload.data).hexdigest()
+    try:
+        probe, _, _ = live.work(probe_job, upload, live.max_points, live.config, live.matcher, None)
+    except Mismatch as e:  # the client's settings, not the scan
+        raise ApiError(e.status, e.reason) from None
+    except Rejected as e:  # unreadable, no face, too large: a scan that fails, as in a local calibration
+        return None, e.reason, content
+    return probe, None, content
+
+
+def _calibrate(job: Job, live: LiveGallery, received: list[Received], subjects: list[str], fmr: float | None,
+               own: bool, who: dict) -> dict:
+    """Prepare the scans on the workers (as many at once as there are workers), score them against the gallery,
+    then commit the threshold's record: answered only once it is in the store."""
+    pool = ThreadPoolExecutor(live.engine.workers, thread_name_prefix="facerec3d-calibrate")
+    try:
+        prepared = list(pool.map(lambda r: _calibration_probe(job, live, r), received))
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+    kept = [(probe, subject, content) for (probe, _, content), subject in zip(prepared, subjects) if probe is not None]
+    if not kept:
+        raise ApiError(422, f"none of the {len(received)} calibration scans could be used; {prepared[0][1]}")
+    probes, kept_subjects, contents = map(list, zip(*kept))
+    genuine, impostor, entries = live.calibration_scores(probes, kept_subjects, contents, job.check)
+    try:
+        record = threshold_record(genuine, impostor, fmr, scans=len(received), failed=len(received) - len(kept),
+                                  data=OWN_SCANS if own else "calibration scans", entries=entries)
+    except ValueError as e:
+        raise ApiError(422, str(e)) from None
+    job.commit()
+    live.record_threshold(record, who)
+    return {"threshold": record, "gallery_version": live.version}
+
+
 def _remove(job: Job, live: LiveGallery, ident: str, who: dict) -> dict:
     job.commit()
     removed = live.remove(ident, who)
@@ -682,7 +739,8 @@ def create_app(service: Service):
     @app.post(f"{API}/verify", summary="Is a probe the claimed subject? (scope query)")
     async def verify(request: Request, probe: UploadFile = File(..., description=scan_doc),
                      claim: str = Form(..., description="Claimed subject id"),
-                     threshold: float | None = Form(None, description="Accept scores >= this (default: the method's)"),
+                     threshold: float | None = Form(None, description="Accept scores >= this (default: the "
+                                                                      "gallery's calibrated one, else the method's)"),
                      format: str | None = Form(None), intrinsics: str | UploadFile | None = Form(None)):
         """The decision, the score and the threshold used; 404 when the claimed subject is not enrolled."""
         try:
@@ -695,6 +753,35 @@ def create_app(service: Service):
             raise ApiError(404, f"subject {claim!r} is not enrolled")
         upload = _upload(probe, format, intrinsics)
         return service.counted(await service.run(request, _verify, live, upload, claim, threshold))
+
+    @app.post(f"{API}/calibrate", summary="Calibrate the verification threshold on labelled scans (scope admin)")
+    async def calibrate(request: Request,
+                        scan: list[UploadFile] = File(..., description=f"The scans (at most {MAX_SCANS}), read as "
+                                                      "for enrol: e.g. those the gallery was enrolled from"),
+                        subject: list[str] = Form(..., description="Each scan's subject id, in the same order"),
+                        intrinsics: list[str] | None = Form(None, description="Depth frames: camera intrinsics "
+                                                            "JSON, one for all the scans or one per scan ('null' "
+                                                            "for a scan without)"),
+                        fmr: float = Form(0.01, gt=0, le=1, description="False-match rate the threshold keeps"),
+                        eer: bool = Form(False, description="The threshold at the equal error rate instead "
+                                                            "(needs two scans of some subjects)"),
+                        own: bool = Form(False, description="The scans are the ones the gallery was enrolled from: "
+                                                            "the record says so, and a later `facerec3d enroll "
+                                                            "--server` calibrates again (others it keeps)")):
+        """Scores each scan against the gallery without the entry enrolled from the same bytes (its own) and
+        records the threshold, as `facerec3d gallery G calibrate SCANS` does for a store file; verify uses it
+        from then on. The record (value, rule, pair counts, ...), answered after it is committed; 422 when the
+        scans cannot give one (none usable, a single subject), 409 for an empty gallery."""
+        if not live.entries:
+            raise ApiError(409, "the gallery is empty")
+        if len(scan) > MAX_SCANS:
+            raise ApiError(422, f"{len(scan)} scans: a calibration takes at most {MAX_SCANS} (an even selection)")
+        if len(subject) != len(scan):
+            raise ApiError(422, f"{len(subject)} subjects for {len(scan)} scans: give each scan's subject, in order")
+        subjects = [_label(s, "subject") for s in subject]
+        received = [_upload(f, None, camera) for f, camera in zip(scan, _cameras(intrinsics, len(scan)))]
+        return await service.run(request, _calibrate, live, received, subjects, None if eer else fmr, own,
+                                 service.who(request))
 
     @app.get(f"{API}/subjects", summary="Enrolled subjects and their entry counts (scope admin)")
     async def subjects():

@@ -16,6 +16,10 @@ Durability: all store access is on one writer thread (one SQLite connection, WAL
 transaction per enrolment), so changes are serialised and `enrol` returns only after the commit; a kill at any
 moment loses no returned entry and leaves no half-written one (SQLite rolls an open transaction back).
 The service should own its store while it runs: changes made by other processes are not seen until restart.
+
+Calibration (`calibration_scores`, `record_threshold`): scans sent for it are scored against one version, a probe
+at a time with no lock held, so identifications go on between them; only the threshold's record is written on
+the writer thread (one short transaction), and verification uses it from then on.
 """
 
 from __future__ import annotations
@@ -294,6 +298,28 @@ class LiveGallery:
             self._default_threshold = self._writer.submit(gallery_threshold, self._store, self.matcher.name).result()
         return self._default_threshold
 
+    def calibration_scores(self, probes: list[Probe], subjects: list[str], contents: list[str],
+                           check: Callable[[], None] = lambda: None) -> tuple[np.ndarray, np.ndarray, int]:
+        """(genuine scores, impostor scores, gallery size) of calibration probes, each with its subject and the
+        SHA-256 of its upload, against the current version, each without its own entry (the one enrolled from the
+        same bytes), as `evaluation.calibrate` scores a gallery's scans. One probe at a time (`check()` between
+        them, e.g. the request's time limit): queries are served in between."""
+        with self.snapshot() as snap:
+            if not snap.entries:
+                raise GalleryError("the gallery is empty")
+            stored = self._writer.submit(self._store.contents).result()  # (committed before the snapshot was made)
+            hashes = np.array([stored.get(e.id) or "" for e in snap.entries])
+            owners = np.array([str(e.subject) for e in snap.entries])
+            genuine: list[float] = []
+            impostor: list[float] = []
+            for probe, subject, content in zip(probes, subjects, contents):
+                check()
+                other = hashes != content
+                scores = snap.gallery.scores_without(probe, np.flatnonzero(~other))
+                genuine += scores[other & (owners == str(subject))].tolist()
+                impostor += scores[other & (owners != str(subject))].tolist()
+            return np.array(genuine), np.array(impostor), len(snap.entries)
+
     def verify(self, probe: Probe, claim: str) -> tuple[float, int]:
         """(the probe's best score against the claimed subject's entries, the gallery version). Methods that
         normalise over the gallery score the probe against all of it."""
@@ -337,6 +363,17 @@ class LiveGallery:
     def _record_failure(self, source: str, reason: str, who: dict) -> None:
         self._store.add_failure(source, reason)
         self.audit.write("enrol-failed", source=source, reason=reason, **who)
+
+    def record_threshold(self, record: dict, who: dict | None = None) -> None:
+        """Commit a calibrated verification threshold's record (`evaluation.calibrate.threshold_record`) to the
+        store; verification uses it once this returns."""
+        self._writer.submit(self._record_threshold, record, who or {}).result()
+
+    def _record_threshold(self, record: dict, who: dict) -> None:
+        self._store.set_threshold(record)
+        self._default_threshold = float(record["value"])
+        self.audit.write("calibrate", value=record["value"], rule=record["rule"], data=record["data"],
+                         scans=record["scans"], **who)
 
     def remove(self, ident: str, who: dict | None = None) -> list[Entry]:
         """Remove subject `ident`'s entries, or else the entries of scan `ident`; returns them. `NotFound` when
