@@ -14,7 +14,7 @@ from facerec3d.matching.registry import METHODS, make_matcher, matcher_class
 ROOT = Path(facerec3d.__file__).parent
 #: Lowest first; a module may import its own layer and those below.
 LAYERS = [
-    {"facerec3d", "errors", "config", "scan", "workers", "facemodel", "models", "render"},
+    {"facerec3d", "errors", "config", "scan", "workers", "facemodel", "models", "render", "jit"},
     {"io"},
     {"geometry"},
     {"preprocess"},
@@ -53,7 +53,9 @@ def _imports(modules: dict[str, Path]) -> dict[str, set[str]]:
 
 def _layer(module: str) -> int:
     top = module.split(".")[1] if "." in module else module
-    return next(i for i, layer in enumerate(LAYERS) if top in layer)
+    found = next((i for i, layer in enumerate(LAYERS) if top in layer), None)
+    assert found is not None, f"{module} is in no layer: add {top!r} to LAYERS"
+    return found
 
 
 def test_no_import_runs_upward():
