@@ -407,6 +407,19 @@ def training_set(root: Path) -> Path:
     return root
 
 
+def parse_score_files(text: str) -> list[tuple[str, str]]:
+    """(label, path) of each LABEL=FILE of `--scores`, comma-separated; a part without "=" continues the previous
+    file's name (a path holding a comma)."""
+    items: list[str] = []
+    for part in text.split(","):
+        if "=" in part or not items:
+            items.append(part)
+        elif part.strip():
+            items[-1] += "," + part
+    pairs = [x.split("=", 1) if "=" in x else [x, ""] for x in items if x.strip()]
+    return [(label.strip(), path.strip()) for label, path in pairs]
+
+
 def score_file_system(path: Path, data: Path, gallery_rows: list, probe_rows: list) -> dict:
     """A system from a score file (an evaluation's scores.txt, or `facerec3d fuse`'s): its score matrix over the
     manifest's probes and gallery, failures where it has no score.
@@ -650,6 +663,9 @@ def main(argv=None) -> int:
     if not (args.data / "manifest.csv").is_file() or not (args.data / "intrinsics.json").is_file():
         print(NO_DATA.format(data=args.data), file=sys.stderr)
         return 2
+    score_files = parse_score_files(args.scores)  # checked before any method runs
+    if bad := next(((label, path) for label, path in score_files if not label or not Path(path).is_file()), None):
+        ap.error(f"--scores {bad[0]}={bad[1]}: give LABEL=FILE with an existing score file")
     anchors = [a for a in args.anchors.split(",") if a]
     if anchors and o3d is None:  # only the anchors run Open3D
         print(NO_OPEN3D.format(error=_O3D_ERROR), file=sys.stderr)
@@ -693,10 +709,9 @@ def main(argv=None) -> int:
             reason = " ".join(f"{type(e).__name__}: {e}".split())
             failures[m] = reason
             print(f"  FAILED {m}: {reason[:300]}", flush=True)
-    for item in filter(None, (x.strip() for x in args.scores.split(","))):
-        label, _, path = item.partition("=")
-        if not path or label in systems:
-            ap.error(f"--scores {item!r}: give LABEL=FILE, with a label not used by another system")
+    for label, path in score_files:
+        if label in systems:
+            ap.error(f"--scores {label}: a label not used by another system, please")
         systems[label] = {**score_file_system(Path(path), args.data, gallery_rows, probe_rows),
                           "timings": {"score_file": path}}
         methods.append(label)

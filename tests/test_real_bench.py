@@ -1,0 +1,28 @@
+"""benchmarks/real_bench.py's argument handling (the benchmark itself needs the real data, which tests do not)."""
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import real_bench  # noqa: E402
+
+
+def test_score_files_split_on_commas_between_files_not_inside_a_name():
+    assert real_bench.parse_score_files("a=/x/w_1,1,1.txt,b=y.txt") == [("a", "/x/w_1,1,1.txt"), ("b", "y.txt")]
+    assert real_bench.parse_score_files(" a=x.txt , ") == [("a", "x.txt")]
+    assert real_bench.parse_score_files("") == []
+    assert real_bench.parse_score_files("nolabel") == [("nolabel", "")]
+
+
+def test_a_missing_score_file_is_refused_in_one_line_before_any_method_runs(tmp_path, capsys):
+    (tmp_path / "manifest.csv").write_text("path,subject,pose,role\n")
+    (tmp_path / "intrinsics.json").write_text("{}")
+    with pytest.raises(SystemExit) as e:
+        real_bench.main(["--data", str(tmp_path), "--methods", "icp", "--anchors", "", "--out", str(tmp_path / "o"),
+                         "--scores", f"w={tmp_path / 'missing.txt'}"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "missing.txt" in err and "existing score file" in err
+    assert not (tmp_path / "o").exists()  # nothing ran
