@@ -406,17 +406,25 @@ def _enroll_remote(server, api_key, records, jobs, preprocess_locally=False, int
                f"to enrol; {server}: {st['entries']} entries")
 
 
+def _keeps_given_threshold(kept: dict | None, where: str) -> bool:
+    """Whether the gallery's threshold was calibrated on scans given for it (the user's choice, not replaced behind
+    them by the calibration that follows an enrolment): then says so in one line, with how to recalibrate
+    (`facerec3d gallery WHERE calibrate ...`)."""
+    from facerec3d.evaluation.calibrate import OWN_SCANS
+
+    if kept is None or kept.get("data") == OWN_SCANS:
+        return False
+    click.echo(f"kept the verification threshold {kept['value']:.4g} calibrated on {kept['data']} (recalibrate: "
+               f"facerec3d gallery {where} calibrate SCANS ...)")
+    return True
+
+
 def _calibrate_own_remote(client, stats, scans, subjects, intrinsics) -> None:
     """After an enrolment through the service: calibrate its threshold on the enrolled scans, as the local
     enrolment does on the gallery's own (FMR 1 %), unless the threshold was calibrated on scans given for it
     (kept, as locally); a calibration that fails or is refused (e.g. a key without the admin scope) is said in
     one line, the enrolment stands."""
-    from facerec3d.evaluation.calibrate import OWN_SCANS
-
-    kept = stats.get("threshold")
-    if kept is not None and kept.get("data") != OWN_SCANS:
-        click.echo(f"kept the verification threshold {kept['value']:.4g} calibrated on {kept['data']} (recalibrate: "
-                   f"facerec3d gallery --server {client.url} calibrate SCANS ...)")
+    if _keeps_given_threshold(stats.get("threshold"), f"--server {client.url}"):
         return
     if not scans:  # (more than 100 scans, and those a calibration would score all failed)
         click.echo("verification threshold not calibrated: none of the scans it would score is in the gallery")
@@ -596,14 +604,7 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
             total = store.stats()["entries"]
         if calibrate and report.enrolled:
             with GalleryStore(gallery) as store:
-                from facerec3d.evaluation.calibrate import OWN_SCANS
-
-                kept = store.threshold()
-                if kept is not None and kept.get("data") != OWN_SCANS:
-                    # a threshold calibrated on scans given for it is the user's choice: not replaced behind them
-                    click.echo(f"kept the verification threshold {kept['value']:.4g} calibrated on {kept['data']} "
-                               f"(recalibrate: facerec3d gallery {gallery} calibrate ...)")
-                else:
+                if not _keeps_given_threshold(store.threshold(), gallery):
                     _calibrate_threshold(store, None, 0.01, engine, cache, quiet_if_impossible=True,
                                          intrinsics=intrinsics)
     click.echo(f"{report.enrolled} enrolled, {len(report.skipped)} already enrolled, {len(report.failures)} failed "
