@@ -10,6 +10,10 @@ scan neutral and frontal, then expressions and ±25° / free poses): one per sen
 model's span (wider identities, deformations, hair fringe, glasses, a hand). Each candidate is evaluated on each
 set (`evaluate`, protocol frgc: first scan gallery, the rest probes) with one preprocessing cache.
 
+Learnt methods (`needs_training`: the embedding adapted to the camera, `adapt = "wccn"`; pca, lda) are trained, per
+set, on other people taken by the same sensor: a set of the same size and kind with subjects numbered from 1000
+(seed 8), written beside it (`NAME-train-SxK`), as an integrator would adapt to a camera with a few volunteers.
+
 Real data: `--real` names the `real_bench.json` of a `python benchmarks/real_bench.py --methods ...` run with the
 same candidates (their labels must match); its held-out-half rank-1 over all probes joins the table. Without it
 the real column is left out, and the table says so: a default chosen without real data is a guess.
@@ -31,6 +35,7 @@ from pathlib import Path
 from facerec3d.config import read_settings
 from facerec3d.datasets.synthetic import DatasetConfig, identity_profile, sensor_profile, write_dataset
 from facerec3d.evaluation.run import evaluate
+from facerec3d.matching.registry import make_matcher
 from facerec3d.preprocess.pipeline import PreprocessConfig
 
 SETS = {  # name: (sensor profile, identities)
@@ -38,6 +43,18 @@ SETS = {  # name: (sensor profile, identities)
     "kinect-v2-outside": ("kinect-v2", "outside-model"), "kinect-v2-8bit": ("kinect-v2-8bit", "model"),
     "realsense": ("realsense", "model"),
 }
+
+
+def training_set(data: Path, name: str, subjects: int, scans: int) -> Path:
+    """The training set of learnt methods for set `name`: other people (subjects from 1000, seed 8) taken by the same
+    sensor, with the same identities, `subjects` x `scans`; written once."""
+    sensor, identities = SETS[name]
+    root = data / f"{name}-train-{subjects}x{scans}"
+    if not (root / "manifest.csv").is_file():
+        write_dataset(root, DatasetConfig(subjects=subjects, scans=scans, first_subject=1000, seed=8,
+                                          scanner=sensor_profile(sensor), identity=identity_profile(identities)),
+                      "abs", progress=False)
+    return root
 
 
 def method_specs(text: str) -> list[tuple[str, str, dict | None]]:
@@ -85,8 +102,11 @@ def main(argv=None) -> int:
                                 scanner=sensor_profile(sensor), identity=identity_profile(identities))
             write_dataset(root, cfg, "abs", progress=False)
         for label, method, options in specs:
+            train = training_set(args.data, name, args.subjects, args.scans) \
+                if make_matcher(method, options).needs_training else None
             m = evaluate(root, method=method, options=options, out=args.data / runs / name / label.replace(":", "-"),
-                         jobs=args.jobs, cache=args.data / "cache", config=config, progress=False, bootstrap=0)
+                         jobs=args.jobs, cache=args.data / "cache", config=config, progress=False, bootstrap=0,
+                         train=train)
             table[label][name], eers[label][name] = m["rank1_all"], m["eer"]
             print(f"{name:18s} {label:28s} rank-1 all {100 * m['rank1_all']:5.1f} %  EER {100 * m['eer']:5.1f} %",
                   flush=True)

@@ -497,7 +497,8 @@ def _bootstrap_options(fn):
 @click.option("--method-config", type=click.Path(exists=True, dir_okay=False),
               help="TOML or JSON file of the method's settings (its config dataclass's fields).")
 @click.option("--train", type=click.Path(exists=True),
-              help="Training dataset (subjects not in DATA) for learnt methods (pca, lda).")
+              help="Training dataset (subjects not in DATA) for learnt methods (pca, lda, an embedding adapted to "
+                   "the camera).")
 @click.option("--model", type=click.Path(exists=True, dir_okay=False),
               help="Saved model (a run's model.npz) instead of --method/--train.")
 @click.option("--out", "out", required=True, type=click.Path(file_okay=False), help="Run folder to write.")
@@ -547,7 +548,8 @@ def evaluate(data, method, method_config, train, model, out, overwrite, protocol
 @click.option("--method", help=f"Matching method of a new gallery (as for evaluate; default {DEFAULT_METHOD}); "
               "an existing gallery's own when not given.")
 @click.option("--method-config", type=click.Path(exists=True, dir_okay=False), help="TOML or JSON method settings.")
-@click.option("--train", type=click.Path(exists=True), help="Training dataset for learnt methods (pca, lda).")
+@click.option("--train", type=click.Path(exists=True),
+              help="Training dataset for learnt methods (pca, lda, an embedding adapted to the camera).")
 @click.option("--model", type=click.Path(exists=True, dir_okay=False), help="Saved model instead of --method/--train.")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False), help="TOML or JSON preprocessing settings.")
 @click.option("--subject", help="Subject of scan files whose names do not say it (default: the file stem).")

@@ -3,6 +3,7 @@ identification of synthetic people it never saw, templates in the gallery store,
 bad model files; and (with the [train] extra only) a tiny model trained here separating a few identities."""
 
 import json
+from pathlib import Path
 import sqlite3
 
 import numpy as np
@@ -13,7 +14,8 @@ from facerec3d.errors import FaceRec3DError
 from facerec3d.gallery.cascade import CascadeConfig, face_descriptor, template_descriptor
 from facerec3d.gallery.store import GalleryStore
 from facerec3d.matching.embedding import (N_CHANNELS, SHIPPED_MODEL, EmbeddingConfig, EmbeddingMatcher,
-                                          EmbeddingModel, InputRecipe, face_input, input_channels, read_card)
+                                          EmbeddingModel, InputRecipe, face_input, input_channels, read_card, wccn)
+from facerec3d.matching.registry import load_matcher
 from facerec3d.matching.icp import ICPMatcher
 from facerec3d.preprocess.pipeline import PreprocessConfig, Preprocessor
 from facerec3d.scan import MIRRORED
@@ -61,6 +63,56 @@ def test_identifies_unseen_synthetic_people_across_pose_and_expression(kinect_fa
         impostors = [scores[j] for j in SUBJECTS if j != s]
         assert scores[s] > max(impostors)  # the genuine claim above every impostor of this probe
     assert all(hits)
+
+
+def _cosine_rank1(gallery: np.ndarray, probes: np.ndarray) -> float:
+    g = gallery / np.linalg.norm(gallery, axis=1, keepdims=True)
+    p = probes / np.linalg.norm(probes, axis=1, keepdims=True)
+    return float(np.mean(np.argmax(p @ g.T, axis=1) == np.arange(len(p))))
+
+
+def test_wccn_shrinks_what_a_cameras_scans_of_one_person_share_and_finds_people_it_hid():
+    # people differ in every direction (σ 1); the camera adds a large spread (σ 3) along 4 directions to every scan
+    rng = np.random.default_rng(0)
+    d, camera = 24, np.linalg.qr(np.random.default_rng(1).normal(size=(24, 4)))[0]
+
+    def scans(people: np.ndarray, seed: int) -> np.ndarray:
+        r = np.random.default_rng(seed)
+        return people + 3.0 * r.normal(size=(len(people), 4)) @ camera.T + 0.2 * r.normal(size=people.shape)
+
+    others, test = rng.normal(size=(60, d)), rng.normal(size=(100, d))
+    train = np.concatenate([scans(others, 10), scans(others, 11), scans(others, 12)])
+    mean, W = wccn(train, [f"p{i}" for i in range(60)] * 3, ridge=0.1)
+    # within-person differences, mostly along the camera's directions before, evenly spread after (whitened)
+    rest = np.linalg.qr(np.concatenate([camera, rng.normal(size=(d, d - 4))], axis=1))[0][:, 4:]
+    diff = scans(others, 13) - scans(others, 14)
+    before = np.var(diff @ camera) / np.var(diff @ rest)
+    after = np.var(diff @ W @ camera) / np.var(diff @ W @ rest)
+    assert before > 100 and after < 0.05 * before
+    gallery, probes = scans(test, 20), scans(test, 21)  # other people, never trained on
+    raw, adapted = _cosine_rank1(gallery, probes), _cosine_rank1((gallery - mean) @ W, (probes - mean) @ W)
+    assert raw < 0.6 and adapted > raw + 0.3
+    with pytest.raises(FaceRec3DError, match="two or more subjects with two or more scans"):
+        wccn(train[:3], ["a", "b", "c"])
+
+
+def test_the_embedding_adapted_to_a_camera_trains_saves_loads_and_still_identifies(kinect_faces, tmp_path):
+    adapted = EmbeddingMatcher(EmbeddingConfig(adapt="wccn"))
+    assert adapted.needs_training and not EmbeddingMatcher().needs_training
+    with pytest.raises(FaceRec3DError, match="not learnt"):
+        adapted.prepare(kinect_faces[(0, "gallery")])
+    trained = SUBJECTS[:4]  # scans of other people taken by the camera; subjects 4–7 are tested
+    adapted.fit([kinect_faces[(s, k)] for s in trained for k in ("gallery", "probe")],
+                [str(s) for s in trained for _ in range(2)])
+    adapted.save(tmp_path / "adapted.npz")
+    loaded = load_matcher(tmp_path / "adapted.npz")
+    face = kinect_faces[(5, "probe")]
+    assert np.array_equal(loaded.prepare(face), adapted.prepare(face))
+    assert np.linalg.norm(adapted.prepare(face)) == pytest.approx(1.0, abs=1e-5)
+    assert not np.allclose(adapted.prepare(face), EmbeddingMatcher().prepare(face), atol=1e-3)
+    tested = SUBJECTS[4:]
+    gallery = [loaded.enroll(kinect_faces[(s, "gallery")]) for s in tested]
+    assert [loaded.identify(kinect_faces[(s, "probe")], gallery, k=1)[0][0] for s in tested] == list(range(len(tested)))
 
 
 def test_input_channels_hold_depth_normals_and_validity():
@@ -222,6 +274,39 @@ def test_cli_evaluate_enroll_identify_verify_and_the_embedding_screen(tmp_path):
     listed = r.output.splitlines()[1:]
     assert listed[0].split()[:2] == ["1", data.probe_subject]
     assert [float(line.split()[-1]) for line in listed[2:]] == [float("-inf")] * 2  # off the shortlist
+
+
+def test_cli_adapts_the_embedding_to_the_camera_with_scans_of_other_people(tmp_path):
+    """`adapt = "wccn"` through evaluate and enroll: it asks for --train in one line, learns from other people's
+    scans of the same camera, stores what it learnt with the gallery, and still identifies."""
+    from click.testing import CliRunner
+
+    from facerec3d.cli import main
+
+    run = CliRunner()
+    data = cli_dataset(tmp_path / "d", 0.6, subjects=3, sensor="kinect-v2")
+    r = run.invoke(main, ["synth", str(tmp_path / "t"), "--subjects", "3", "--scans", "2", "--sensor", "kinect-v2",
+                          "--first-subject", "1000", "--seed", "6"])
+    assert r.exit_code == 0, r.output
+    config = str(Path(__file__).parents[1] / "examples" / "embedding-adapted.toml")
+    cache, common = str(tmp_path / "cache"), ["--jobs", "1"]
+    r = run.invoke(main, ["evaluate", str(data.folder), "--method", "embedding", "--method-config", config,
+                          "--out", str(tmp_path / "run0"), "--bootstrap", "0", "--cache", cache, *common])
+    assert r.exit_code != 0 and "--train" in r.output and "Traceback" not in r.output, r.output
+    r = run.invoke(main, ["evaluate", str(data.folder), "--method", "embedding", "--method-config", config,
+                          "--train", str(tmp_path / "t"), "--out", str(tmp_path / "run"), "--bootstrap", "0",
+                          "--cache", cache, *common])
+    assert r.exit_code == 0, r.output
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert metrics["rank1_all"] == 1.0 and metrics["n_train_subjects"] == 3
+    store = str(tmp_path / "a.sqlite")
+    r = run.invoke(main, ["enroll", *map(str, data.gallery), "--gallery", store, "--method", "embedding",
+                          "--method-config", config, "--train", str(tmp_path / "t"), "--cache", cache, *common])
+    assert r.exit_code == 0 and "3 enrolled" in r.output, r.output
+    with GalleryStore(store) as g:
+        assert g.matcher().wccn_ is not None
+    r = run.invoke(main, ["identify", str(data.probe), "--gallery", store, "-k", "2", "--cache", cache])
+    assert r.exit_code == 0 and r.output.splitlines()[1].split()[:2] == ["1", data.probe_subject], r.output
 
 
 def test_the_service_enrols_and_identifies_with_the_embedding_and_its_screen(tmp_path):

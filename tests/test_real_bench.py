@@ -26,3 +26,14 @@ def test_a_missing_score_file_is_refused_in_one_line_before_any_method_runs(tmp_
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert "missing.txt" in err and "existing score file" in err
     assert not (tmp_path / "o").exists()  # nothing ran
+
+
+def test_training_on_the_tuning_half_never_lists_a_held_out_person(tmp_path):
+    manifest = [{"path": f"{s}/{p}_1.png", "subject": s, "pose": p, "role": "gallery" if p == "front" else "probe"}
+                for s in ("s000", "s001", "s002", "s003") for p in ("front", "left")]
+    path = real_bench.tuning_manifest(tmp_path, manifest, tmp_path)
+    rows = path.read_text().splitlines()
+    assert rows[0] == "path,subject,pose"
+    listed = [r.split(",") for r in rows[1:]]
+    assert {s for _, s, _ in listed} == {"s000", "s002"} and len(listed) == 4  # the even-index (tuning) half
+    assert all(Path(p).is_absolute() and Path(p).parent.name == s for p, s, _ in listed)

@@ -23,14 +23,14 @@ A cell is the mean of the seen 1 mm cells under it (averaging `step_mm`² cells 
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from facerec3d.errors import FaceRec3DError
+from facerec3d.errors import FaceRec3DError, InputError
 from facerec3d.matching.base import Matcher, Template
 from facerec3d.matching.depthmap import fill_nearest
 from facerec3d.preprocess.resample import ResampleConfig, depth_map
@@ -195,16 +195,47 @@ def read_card(model: str | Path) -> dict[str, Any]:
     return data
 
 
+ADAPTATIONS = ("none", "wccn")
+
+
 @dataclass(frozen=True)
 class EmbeddingConfig:
     """Learned-embedding matcher settings."""
 
     model: str = ""  # ONNX model path; "": the shipped model (SHIPPED_MODEL)
     threads: int = 1  # onnxruntime threads per process (the engine already runs one process per core)
+    adapt: str = "none"  # "wccn": adapt the embeddings to a camera with scans of other people taken by it (`--train`:
+    #                      several scans a person), by within-class covariance normalisation (`wccn`)
+    wccn_ridge: float = 1.0  # ρ of `wccn`, relative to the mean within-person variance; 1.0 chosen by two-fold
+    #                          cross-validation within the rap3df-2019 tuning half (0.1–10 tried; docs/embedding.md)
 
     def __post_init__(self) -> None:
         if self.threads < 1:
             raise ValueError("threads must be ≥ 1")
+        if self.adapt not in ADAPTATIONS:
+            raise ValueError(f"adapt must be one of {', '.join(ADAPTATIONS)}")
+        if not self.wccn_ridge > 0:
+            raise ValueError("wccn_ridge must be > 0")
+
+
+def wccn(embeddings: np.ndarray, subjects: Sequence[str], ridge: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Within-class covariance normalisation (Hatch, Kajarekar & Stolcke, ICSLP 2006): (mean (d,), W (d, d)) such
+    that x ↦ W (x − mean) whitens the spread of a person's embeddings about their own mean (S_w, pooled over the
+    subjects with two or more scans), S_w regularised by ρ = `ridge` × its mean eigenvalue: W = (S_w + ρ I)^(-1/2).
+    Directions in which a camera's scans of one person vary (noise, pose, what the synthetic training never showed)
+    are shrunk, those in which people differ are kept; the cosine is then taken of the whitened vectors."""
+    E = np.asarray(embeddings, dtype=np.float64)
+    labels = np.asarray(subjects)
+    groups = [E[labels == s] for s in dict.fromkeys(labels.tolist())]
+    deviations = [g - g.mean(axis=0) for g in groups if len(g) > 1]
+    if len(deviations) < 2:
+        raise InputError("adapting the embedding (wccn) needs two or more subjects with two or more scans each "
+                         f"(given {len(groups)} subjects, {len(deviations)} with two or more scans)")
+    D = np.concatenate(deviations)
+    Sw = D.T @ D / len(D)
+    rho = ridge * np.trace(Sw) / len(Sw)
+    w, V = np.linalg.eigh(Sw + rho * np.eye(len(Sw)))
+    return E.mean(axis=0), (V / np.sqrt(w)) @ V.T
 
 
 class EmbeddingMatcher(Matcher[np.ndarray]):
@@ -216,16 +247,54 @@ class EmbeddingMatcher(Matcher[np.ndarray]):
     def __init__(self, config: EmbeddingConfig | None = None) -> None:
         self.config = EmbeddingConfig() if config is None else config
         self.model = EmbeddingModel(self.config.model or SHIPPED_MODEL, self.config.threads)
+        self.wccn_: tuple[np.ndarray, np.ndarray] | None = None  # (mean, W) learnt by `fit` when adapt = "wccn"
         self._stacked: tuple[tuple[Template, ...], np.ndarray] | None = None
 
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_stacked": None}
 
-    def embed(self, scans: Sequence[FaceScan]) -> np.ndarray:
-        """(N, dim) unit embeddings of preprocessed faces, in one batch."""
+    @property
+    def needs_training(self) -> bool:
+        return self.config.adapt != "none"
+
+    def fit(self, scans: Sequence[FaceScan], subjects: Sequence[str]) -> EmbeddingMatcher:
+        """adapt = "wccn": learn the camera's within-person spread from its scans of other people (`wccn`)."""
+        if self.needs_training:
+            self.wccn_ = wccn(self.network_embed(scans), subjects, self.config.wccn_ridge)
+        return self
+
+    def state(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        return ({}, {}) if self.wccn_ is None else ({"wccn_mean": self.wccn_[0], "wccn_matrix": self.wccn_[1]}, {})
+
+    def set_state(self, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any]) -> None:
+        if "wccn_matrix" in arrays:
+            mean, W = np.asarray(arrays["wccn_mean"], np.float64), np.asarray(arrays["wccn_matrix"], np.float64)
+            if mean.ndim != 1 or W.shape != (len(mean), len(mean)):
+                raise FaceRec3DError(f"embedding adaptation of shapes {mean.shape} and {W.shape}: not a (d,), "
+                                     "(d, d) pair")
+            self.wccn_ = mean, W
+
+    def network_embed(self, scans: Sequence[FaceScan]) -> np.ndarray:
+        """(N, dim) the network's unit embeddings of preprocessed faces, in one batch (no adaptation)."""
         if not scans:
             return np.zeros((0, int(self.model.card.get("embedding_dim", 0))), dtype=np.float32)
         return self.model.embed(np.stack([face_input(s, self.model.recipe) for s in scans]))
+
+    def embed(self, scans: Sequence[FaceScan]) -> np.ndarray:
+        """(N, dim) unit embeddings of preprocessed faces, in one batch: the network's, adapted to the camera
+        (x ↦ W (x − mean), normalised again) once `fit` has learnt the adaptation."""
+        e = self.network_embed(scans)
+        if self.needs_training:
+            if self.wccn_ is None:
+                raise FaceRec3DError("the embedding's adaptation (adapt = \"wccn\") is not learnt: give scans of "
+                                     "the camera (--train DATA) or a saved model (--model FILE)")
+            mean, W = self.wccn_
+            if len(mean) != e.shape[1]:
+                raise FaceRec3DError(f"embedding adaptation for {len(mean)} values, the model gives {e.shape[1]}: "
+                                     "learnt with another model")
+            a = (e - mean) @ W
+            e = (a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)).astype(np.float32)
+        return e
 
     def enroll(self, scan: FaceScan) -> Template:
         return Template(scan.meta.subject, scan.meta.scan_id, self.name, {"embedding": self.embed([scan])[0]},
