@@ -16,6 +16,7 @@ from facerec3d.gallery.store import GalleryStore
 from facerec3d.matching.embedding import (N_CHANNELS, SHIPPED_MODEL, EmbeddingConfig, EmbeddingMatcher,
                                           EmbeddingModel, InputRecipe, face_input, input_channels, read_card, wccn)
 from facerec3d.matching.registry import load_matcher
+from facerec3d.matching.base import Template
 from facerec3d.matching.icp import ICPMatcher
 from facerec3d.preprocess.pipeline import PreprocessConfig, Preprocessor
 from facerec3d.scan import MIRRORED
@@ -110,6 +111,11 @@ def test_the_embedding_adapted_to_a_camera_trains_saves_loads_and_still_identifi
     assert np.array_equal(loaded.prepare(face), adapted.prepare(face))
     assert np.linalg.norm(adapted.prepare(face)) == pytest.approx(1.0, abs=1e-5)
     assert not np.allclose(adapted.prepare(face), EmbeddingMatcher().prepare(face), atol=1e-3)
+    bad = Template(None, None, "embedding", {"wccn_mean": np.zeros(3), "wccn_matrix": np.eye(2)},
+                   {"options": adapted.options(), "state": {}})
+    bad.save(tmp_path / "bad.npz")
+    with pytest.raises(FaceRec3DError, match="bad.npz: not a usable embedding model .*shapes"):
+        load_matcher(tmp_path / "bad.npz")
     tested = SUBJECTS[4:]
     gallery = [loaded.enroll(kinect_faces[(s, "gallery")]) for s in tested]
     assert [loaded.identify(kinect_faces[(s, "probe")], gallery, k=1)[0][0] for s in tested] == list(range(len(tested)))

@@ -461,7 +461,10 @@ class GalleryStore:
                 raise GalleryError(f"{self.path}: the matcher's learnt array {name!r} is damaged: {e}") from None
         state = json.loads(self._require("state"))
         if arrays or state:
-            matcher.set_state(arrays, state)
+            try:
+                matcher.set_state(arrays, state)
+            except (ValueError, KeyError, TypeError) as e:  # learnt arrays missing or of the wrong shape
+                raise GalleryError(f"{self.path}: the matcher's learnt state is not usable: {e}") from None
         return matcher
 
     def _require(self, key: str) -> str:

@@ -270,8 +270,7 @@ class EmbeddingMatcher(Matcher[np.ndarray]):
         if "wccn_matrix" in arrays:
             mean, W = np.asarray(arrays["wccn_mean"], np.float64), np.asarray(arrays["wccn_matrix"], np.float64)
             if mean.ndim != 1 or W.shape != (len(mean), len(mean)):
-                raise FaceRec3DError(f"embedding adaptation of shapes {mean.shape} and {W.shape}: not a (d,), "
-                                     "(d, d) pair")
+                raise ValueError(f"embedding adaptation of shapes {mean.shape} and {W.shape}, not (d,) and (d, d)")
             self.wccn_ = mean, W
 
     def network_embed(self, scans: Sequence[FaceScan]) -> np.ndarray:

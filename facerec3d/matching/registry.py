@@ -55,7 +55,10 @@ def load_matcher(path: str | PathLike) -> Matcher:
     except (OSError, ValueError, KeyError) as e:
         raise FaceRec3DError(f"{path}: not a facerec3d model file ({e})") from None
     matcher = stored_matcher(t.method, options)
-    matcher.set_state(t.arrays, state)
+    try:
+        matcher.set_state(t.arrays, state)
+    except (ValueError, KeyError, TypeError) as e:  # learnt arrays missing or of the wrong shape
+        raise FaceRec3DError(f"{path}: not a usable {t.method} model ({e})") from None
     return matcher
 
 
