@@ -315,12 +315,18 @@ def test_cli_adapts_the_embedding_to_the_camera_with_scans_of_other_people(tmp_p
     assert r.exit_code == 0 and r.output.splitlines()[1].split()[:2] == ["1", data.probe_subject], r.output
 
 
-def test_the_service_enrols_and_identifies_with_the_embedding_and_its_screen(tmp_path):
-    """The service (in process, one worker): an embedding gallery identifies a smiling probe first, and an ICP
-    gallery's cascade with screen=embedding lists only its shortlist, the right face first."""
-    for matcher, form in ((EmbeddingMatcher(), {"k": "3"}),
+def test_the_service_enrols_and_identifies_with_the_embedding_and_its_screen(tmp_path, kinect_faces):
+    """The service (in process, one worker): an embedding gallery, as it is and adapted to a camera, identifies a
+    smiling probe first, and an ICP gallery's cascade with screen=embedding lists only its shortlist, the right
+    face first."""
+    others = SUBJECTS[3:]  # the service enrols people 0–2
+    adapted = EmbeddingMatcher(EmbeddingConfig(adapt="wccn")).fit(
+        [kinect_faces[(s, k)] for s in others for k in ("gallery", "probe")], [str(s) for s in others for _ in "ab"])
+    for matcher, form in ((EmbeddingMatcher(), {"k": "3"}), (adapted, {"k": "3"}),
                           (ICPMatcher(), {"k": "3", "cascade": "true", "screen": "embedding", "shortlist": "2"})):
-        candidates = service_identify(tmp_path, matcher, form)
+        folder = tmp_path / f"{len(list(tmp_path.iterdir()))}"
+        folder.mkdir()
+        candidates = service_identify(folder, matcher, form)
         assert candidates[0]["subject"] == "s1", candidates
         assert len(candidates) == (2 if "screen" in form else 3)
         assert candidates[0]["score"] > candidates[1]["score"]
