@@ -13,6 +13,9 @@ epochs, the loss and the validation figures. The input recipe travels with the m
 another window is fed the window it was trained on. The package ships one model (`SHIPPED_MODEL`, MIT); users'
 installs need onnxruntime only, never PyTorch.
 
+A camera the network never saw varies a person's embeddings in its own ways: `adapt = "wccn"` learns them from
+scans of other people taken by that camera (`fit`, `--train`) and shrinks them (`wccn`), before the cosine.
+
 Input channels (`face_input`), each (n, n) on a `step_mm` grid over ±`half_width_mm` around the nose tip:
   0. depth z / depth_scale_mm, missing cells filled with their nearest seen cell (scipy distance transform);
   1–3. the unit normal (n_x, n_y, n_z) of that depth map (central differences), 0 where nothing was seen;
