@@ -536,7 +536,8 @@ def evaluate(data, method, method_config, train, model, out, overwrite, protocol
     m = run(data, method, out, protocol=protocol, jobs=jobs, scheduler=scheduler, cache=_cache_folder(cache),
             config=config, options=options, train=train, model=model,
             cascade=_cascade_config(cascade, shortlist, screen), intrinsics=intrinsics, bootstrap=bootstrap, seed=seed,
-            overwrite=overwrite)  # an earlier run in --out is refused before any work
+            overwrite=overwrite,  # an earlier run in --out is refused before any work
+            echo=lambda line: click.echo(line, err=True))  # what a learnt method learnt from, --train unused
     _print_metrics(m)
     click.echo(f"report: {Path(out) / 'report.html'}")
 
@@ -592,7 +593,7 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
         matcher = _gallery_matcher(gallery) if method is None and not (options or train or model) else None
         if matcher is None:
             matcher, _ = trained_matcher(method or DEFAULT_METHOD, options, train=train, model=model, workers=engine,
-                                         cache=cache, config=config)
+                                         cache=cache, config=config, echo=lambda line: click.echo(line, err=True))
         with GalleryStore(gallery, create=True) as store:
             _note_new_method(store, matcher)
             with tqdm(total=len(records), unit="scan", desc="enrolling") as bar:
@@ -1269,7 +1270,8 @@ def demo(subjects, scans, methods, out, jobs, seed):
     for name in names:
         click.echo(f"\n== {name}" + (f" (trained on {out / 'train'})" if name in learnt else ""))
         m = run(out / "data", name, out / name, jobs=jobs, cache=out / "cache",
-                train=out / "train" if name in learnt else None, overwrite=True)  # its own runs: made again
+                train=out / "train" if name in learnt else None, overwrite=True,  # its own runs: made again
+                echo=lambda line: click.echo(line, err=True))
         _print_metrics(m)
     compare_runs([out / name for name in names], out / "compare", overwrite=True)  # its own comparison
     click.echo(f"\nreports: {out / 'compare' / 'compare.html'} (all methods), {out}/<method>/report.html")

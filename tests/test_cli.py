@@ -1,7 +1,10 @@
+from pathlib import Path
+
 import pytest
 from click.testing import CliRunner
 
 from facerec3d.cli import main
+from tests.conftest import cli_dataset
 
 
 def test_synth_info_convert_view(tmp_path):
@@ -56,3 +59,87 @@ def test_demo_evaluates_each_method_and_compares_them(tmp_path):
     figures = [k for k in again if k not in ("scores", "scores_sha256", "format", "score_direction", "provenance")]
     assert figures and {k: again[k] for k in figures} == {k: icp[k] for k in figures}
     check_against_pyeer(out / "icp" / "scores.txt")
+
+
+# ----------------------------------------------------------------------------- --train: what learns, from what
+EXAMPLES = Path(__file__).parents[1] / "examples"
+TRAIN_FIX = ("give --train DATA, scans of people other than those it will match (at least 2 people with 2 scans "
+             "each), or a saved model (--model FILE)")
+
+
+@pytest.fixture(scope="module")
+def learning(tmp_path_factory):
+    """3 people × 2 scans to enrol or evaluate on; a training manifest of 3 other people × 2 scans and one unreadable
+    scan of a fourth; a preprocessing cache."""
+    root = tmp_path_factory.mktemp("learning")
+    data = cli_dataset(root / "d", 0.6)
+    r = CliRunner().invoke(main, ["synth", str(root / "t"), "--subjects", "3", "--scans", "2", "--rows", "240",
+                                  "--cols", "320", "--seed", "6", "--first-subject", "1000"])
+    assert r.exit_code == 0, r.output
+    (root / "bad.bnt").write_bytes(b"\x01\x02")
+    rows = (root / "t" / "manifest.csv").read_text().splitlines()[1:]
+    train = root / "train.csv"
+    train.write_text("path,subject\n" + "".join(f"t/{row.split(',')[0]},{row.split(',')[1]}\n" for row in rows)
+                     + "bad.bnt,09999\n")
+    return data, train, str(root / "cache")
+
+
+def test_a_learnt_method_without_train_names_what_learns_the_settings_file_and_the_fix(learning):
+    """One line, exit 2: the fusion member that learns and the settings file that made it learn; wording that fits
+    enrol as well as evaluate (not 'the test set')."""
+    data, _, cache = learning
+    fusion = EXAMPLES / "fusion-adapted.toml"
+    r = CliRunner().invoke(main, ["enroll", *map(str, data.gallery), "--gallery", str(data.folder / "g.sqlite"),
+                                  "--method", "fusion", "--method-config", str(fusion), "--jobs", "1", "--cache", cache])
+    assert r.exit_code == 2 and r.output == (f"error: {fusion}: member 'embedding' of method 'fusion' must learn from "
+                                             f"data: {TRAIN_FIX}\n"), r.output
+    embedding = EXAMPLES / "embedding-adapted.toml"
+    r = CliRunner().invoke(main, ["evaluate", str(data.folder), "--method", "embedding", "--method-config",
+                                  str(embedding), "--out", str(data.folder / "run"), "--jobs", "1", "--cache", cache])
+    assert r.exit_code == 2 and r.output == (f"error: {embedding}: method 'embedding' must learn from data: "
+                                             f"{TRAIN_FIX}\n"), r.output
+    r = CliRunner().invoke(main, ["evaluate", str(data.folder), "--method", "lda", "--out", str(data.folder / "run"),
+                                  "--jobs", "1", "--cache", cache])
+    assert r.exit_code == 2 and r.output == f"error: method 'lda' must learn from data: {TRAIN_FIX}\n", r.output
+
+
+def test_train_says_what_the_method_learnt_from_and_warns_when_few_people(learning, tmp_path, monkeypatch):
+    """evaluate and enroll say on stderr how many scans of how many people were learnt from (the unreadable scan
+    and its person left out), and warn below FEW_TRAINING_PEOPLE."""
+    from facerec3d.matching import registry
+
+    data, train, cache = learning
+    learnt = f"method 'pca' learnt from 6 scans of 3 people in {train} (1 scan failed to preprocess, left out)\n"
+    few = (f"warning: {train}: 3 people only, too few to learn from reliably: give scans of 10 or more people (a few "
+           "dozen are better)\n")
+    r = CliRunner().invoke(main, ["evaluate", str(data.folder), "--method", "pca", "--train", str(train), "--out",
+                                  str(tmp_path / "run"), "--bootstrap", "0", "--jobs", "1", "--cache", cache])
+    assert r.exit_code == 0 and learnt + few in r.stderr and learnt not in r.stdout, r.output
+    r = CliRunner().invoke(main, ["enroll", *map(str, data.gallery), "--gallery", str(tmp_path / "g.sqlite"),
+                                  "--method", "lda", "--train", str(train), "--no-calibrate", "--jobs", "1",
+                                  "--cache", cache])
+    assert r.exit_code == 0 and learnt.replace("pca", "lda") + few in r.stderr, r.output
+    monkeypatch.setattr(registry, "FEW_TRAINING_PEOPLE", 3)
+    r = CliRunner().invoke(main, ["enroll", *map(str, data.gallery), "--gallery", str(tmp_path / "g2.sqlite"),
+                                  "--method", "lda", "--train", str(train), "--no-calibrate", "--jobs", "1",
+                                  "--cache", cache])
+    assert r.exit_code == 0 and "learnt from 6 scans of 3 people" in r.stderr and "warning" not in r.stderr, r.output
+
+
+def test_train_given_to_a_method_that_learns_nothing_is_a_warning_not_silence(learning, tmp_path):
+    """Not read, not an error: one warning line on stderr, exit code 0, and nothing learnt recorded in the run."""
+    import json
+
+    data, train, cache = learning
+    r = CliRunner().invoke(main, ["evaluate", str(data.folder), "--method", "curvature", "--train", str(train),
+                                  "--out", str(tmp_path / "run"), "--bootstrap", "0", "--jobs", "1", "--cache", cache])
+    assert r.exit_code == 0, r.output
+    assert f"warning: method 'curvature' learns nothing: --train {train} not used\n" in r.stderr, r.output
+    assert "train" not in json.loads((tmp_path / "run" / "metrics.json").read_text())
+    settings = tmp_path / "fusion.toml"
+    settings.write_text('members = ["curvature"]\n')
+    r = CliRunner().invoke(main, ["enroll", str(data.gallery[0]), "--gallery", str(tmp_path / "g.sqlite"), "--method",
+                                  "fusion", "--method-config", str(settings), "--train", str(train), "--no-calibrate",
+                                  "--jobs", "1", "--cache", cache])
+    assert r.exit_code == 0 and r.stderr.startswith(f"warning: method 'fusion' learns nothing with the settings of "
+                                                    f"{settings}: --train {train} not used\n"), r.output

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 from dataclasses import asdict
 from pathlib import Path
@@ -40,7 +40,7 @@ def evaluate(data: str | Path, method: str = DEFAULT_METHOD, out: str | Path = "
              config: PreprocessConfig = PreprocessConfig(), options: Mapping[str, Any] | None = None,
              train: str | Path | None = None, model: str | Path | None = None, cascade: CascadeConfig | None = None,
              intrinsics: str | Path | None = None, bootstrap: int = BOOTSTRAP, seed: int = 0,
-             progress: bool = True, overwrite: bool = True) -> dict:
+             progress: bool = True, overwrite: bool = True, echo: Callable[[str], None] | None = None) -> dict:
     """Evaluate `method` (with config `options`) on the dataset at `data` and write the run folder `out`;
     returns metrics.json's content. Learnt methods are fitted on the dataset `train` (and the model saved
     as out/model.npz) or loaded from `model`. Everything runs on a `gallery.engine.Engine`: `jobs` processes,
@@ -60,13 +60,14 @@ def evaluate(data: str | Path, method: str = DEFAULT_METHOD, out: str | Path = "
     cached from computed preprocessing.
 
     A folder `out` that holds an earlier run is refused unless `overwrite` (the command line's --overwrite; here
-    the default), and then that run's files are removed first (`report.RUN_FILES`), so none is left over."""
+    the default), and then that run's files are removed first (`report.RUN_FILES`), so none is left over.
+    `echo` (the command line's stderr) is told what a learnt method learnt from (`registry.trained_matcher`)."""
     dataset = open_dataset(data)
     sp = split(dataset, protocol)  # a dataset the protocol does not suit is refused before any work
     claim_run_folder(out, overwrite, keep=[model])
     with Engine.create(jobs, scheduler) as engine:
         matcher, training = trained_matcher(method, options, train=train, model=model, workers=engine, cache=cache,
-                                            config=config, progress=progress)
+                                            config=config, progress=progress, echo=echo)
         if cascade is not None:
             check_cascadable(matcher)
         return _evaluate(engine, matcher, training, dataset, sp, data, out, jobs=jobs, cache=cache,

@@ -163,6 +163,11 @@ class Matcher(ABC, Generic[P]):
         """True when `fit` must be called (with `--train`) before enrolling."""
         return False
 
+    def learners(self) -> list[str]:
+        """The names of the methods in this matcher that learn from data: its own when it does (a fusion: its
+        members that do), for messages that say which one needs `--train`."""
+        return [self.name] if self.needs_training else []
+
     def state(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """What `fit` learnt: (named arrays, JSON-able attributes); empty for matchers that learn nothing."""
         return {}, {}

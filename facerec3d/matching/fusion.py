@@ -83,6 +83,9 @@ class FusionMatcher(GalleryNormalised, Matcher[list]):
     def needs_training(self) -> bool:
         return any(m.needs_training for m in self.members)
 
+    def learners(self) -> list[str]:
+        return [name for m in self.members for name in m.learners()]
+
     def fit(self, scans: Sequence[FaceScan], subjects: Sequence[str]) -> FusionMatcher:
         for m in self.members:
             m.fit(scans, subjects)

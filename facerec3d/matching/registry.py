@@ -10,7 +10,7 @@ Each method's module is imported only when the method is used.
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from os import PathLike
 from pathlib import Path
 from typing import Any
@@ -62,21 +62,53 @@ def load_matcher(path: str | PathLike) -> Matcher:
     return matcher
 
 
+#: What --train must hold for every learnt method: the strictest rule, the embedding's (adapt = "wccn",
+#: `embedding.wccn`); LDA (`subspace.LDAMatcher.fit`) and the afm residue model need less, PCA nothing.
+TRAIN_RULE = "at least 2 people with 2 scans each"
+
+#: Training people below which --train draws a warning: LDA finds at most people − 1 directions, and a camera's
+#: within-person spread (adapt = "wccn") is poorly estimated from a handful of people (its ridge was chosen with
+#: 20 people a fold, and the depth-camera guide asks for a few dozen).
+FEW_TRAINING_PEOPLE = 10
+
+
+def _learners(matcher: Matcher) -> str:
+    """Who learns from data in a matcher, for messages: "method 'lda'", or a fusion's "member 'embedding' of method
+    'fusion'"."""
+    names = matcher.learners()
+    if names == [matcher.name]:
+        return f"method {matcher.name!r}"
+    return f"member{'s' if len(names) > 1 else ''} {', '.join(map(repr, names))} of method {matcher.name!r}"
+
+
+def _count(n: int, one: str, many: str) -> str:
+    return f"{n} {one if n == 1 else many}"
+
+
 def trained_matcher(method: str, options: Mapping[str, Any] | None = None, *, train: str | Path | None = None,
                     model: str | Path | None = None, workers: Workers | None = None,
                     cache: str | Path | None = DEFAULT_CACHE, config: PreprocessConfig = PreprocessConfig(),
-                    progress: bool = True) -> tuple[Matcher, dict]:
+                    progress: bool = True, echo: Callable[[str], None] | None = None) -> tuple[Matcher, dict]:
     """A matcher ready to enrol: loaded from `model`, or built from (method, options) and fitted on the
     dataset `train` (every scan that preprocesses, on `workers` (default: this process); failures are skipped
-    and counted). Returns (matcher, info about the training)."""
+    and counted). Returns (matcher, info about the training). `echo` (the command line's stderr) is told in one
+    line what the matcher learnt from, with a warning when that is few people; and, when the matcher learns
+    nothing, that `train` was not used (it is not read)."""
     if model is not None:
         return load_matcher(model), {"model": str(model)}
+    say = echo or (lambda line: None)
+    source = getattr(options, "source", None)  # the settings file, when read with config.read_settings
     matcher = make_matcher(method, options)
-    if train is None:
-        if matcher.needs_training:
-            raise FaceRec3DError(f"method {method!r} learns from data: give a training set (--train DATA) "
-                                 "of subjects not in the test set, or a saved model (--model FILE)")
+    if not matcher.needs_training:
+        if train is not None:
+            settings = f" with the settings of {source}" if source else ""
+            say(f"warning: method {matcher.name!r} learns nothing{settings}: --train {train} not used")
         return matcher, {}
+    who = _learners(matcher)
+    if train is None:
+        raise FaceRec3DError((f"{source}: " if source else "") + f"{who} must learn from data: give --train DATA, "
+                             f"scans of people other than those it will match ({TRAIN_RULE}), or a saved model "
+                             "(--model FILE)")
     records = open_dataset(train).records
     t0 = time.perf_counter()
     outcomes = list(tqdm(preprocess_files([r.path for r in records], config, workers=workers, cache=cache),
@@ -85,5 +117,13 @@ def trained_matcher(method: str, options: Mapping[str, Any] | None = None, *, tr
     if not kept:
         raise FaceRec3DError(f"{train}: no training scan could be preprocessed")
     matcher.fit([f for f, _ in kept], [s for _, s in kept])
-    return matcher, {"train": str(train), "n_train": len(kept), "train_failures": len(records) - len(kept),
-                     "n_train_subjects": len({s for _, s in kept}), "fit_s": time.perf_counter() - t0}
+    info = {"train": str(train), "n_train": len(kept), "train_failures": len(records) - len(kept),
+            "n_train_subjects": len({s for _, s in kept}), "fit_s": time.perf_counter() - t0}
+    people = _count(info["n_train_subjects"], "person", "people")
+    say(f"{who} learnt from {_count(len(kept), 'scan', 'scans')} of {people} in {train}"
+        + (f" ({_count(info['train_failures'], 'scan', 'scans')} failed to preprocess, left out)"
+           if info["train_failures"] else ""))
+    if info["n_train_subjects"] < FEW_TRAINING_PEOPLE:
+        say(f"warning: {train}: {people} only, too few to learn from reliably: give scans of "
+            f"{FEW_TRAINING_PEOPLE} or more people (a few dozen are better)")
+    return matcher, info
