@@ -7,7 +7,8 @@ surroundings on a ~2 mm sub-sampled range image, along Z and along the local
 surface normal, those standing out at the rim of the data, and the peaks of
 each head's outline at nose height (a head in profile; `silhouette_candidates`). Each is
 verified by a rigid fit of the morphable model's mean face from a Hotelling
-frame turned by a few yaws; the best distinct placements get a full fit of
+frame turned by a few yaws (each yaw's placement competes, not only the best
+fitting one per candidate); the best distinct placements get a full fit of
 the model (pose, identity, expression; `pose.fit_face_model`), which gives
 the nose tip, the other fiducials and the frontal pose. The model's identity
 prior regularises that fit and ranks placements; it does not decide whether
@@ -72,6 +73,9 @@ class DetectConfig:
     crown_mm: tuple[float, float] = (30.0, 190.0)  # a nose tip lies this far below the top of its head (upright) ...
     crown_reach_mm: float = 250.0  # ... the highest point this far sideways or less ...
     crown_depth_mm: float = 400.0  # ... and this far in depth (not the wall behind)
+    max_roll_deg: float = 45.0  # ... and a face is rolled (tilted sideways) at most this much: on rap3df-2019 the
+    #                             detections before this prior had a median roll of 3°, 99 % under 46°; a face fitted
+    #                             rolled 74° to a hand and a cheek on the synthetic outside-model set
     heads: int = 2  # profile candidates are looked for on the largest surfaces ...
     min_head_area_mm2: float = 8000.0  # ... of at least this area (a head seen from any side: ~30,000) ...
     join_mm: float = 15.0  # ... whose neighbouring pixels lie this near in 3D
@@ -80,12 +84,14 @@ class DetectConfig:
     profile_peaks: int = 2  # peaks per side of each head, beside its outermost point (1: 2 frames right, 5 wrong)
     max_head_width_mm: float = 350.0  # a head is at most this wide at nose height (median; shoulders ~400–500)
     head_weight: float = 0.5  # placement penalty per 50 mm outside crown_mm
-    finalists: int = 6  # the best distinct coarse placements get a full fit (6, not 4: with the profile candidates
-    #                     the frontal nose of a bowed head was left out of 4 on rap3df-2019) ...
+    finalists: int = 8  # the best distinct coarse placements get a full fit (6, not 4: with the profile candidates
+    #                     the frontal nose of a bowed head was left out of 4 on rap3df-2019; 8 since 2026-12-04, when
+    #                     every start yaw's placement began to compete: with 6, four bowed heads of rap3df-2019 lost
+    #                     their nose, with 7 one; detection ~1.28× slower, docs/methods.md) ...
     identity_penalty: float = 0.1  # ... and the best `placement_score` wins: the identity prior regularises, never gates
     prominence_weight: float = 0.35  # ... with a bonus for a nose standing out as noses do (`prominence`) ...
     prominence_mm: float = 20.0  # ... up to this height above its plane and its dome ...
-    rms_weight: float = 2.0  # ... less this × how much the full fit's RMS exceeds the best placement's,
+    rms_weight: float = 2.0  # ... less this × how much the full fit's RMS exceeds the best face-shaped placement's,
     rms_tolerance: float = 0.1  # ... relative, beyond this share (`rms_excess`: hair and the back of a head leave a
     #                             rougher residue than a face). 2 since 2026-12-03, measured over three ICP seeds:
     #                             rap3df-2019 held-out +2.1 points (default fusion), synthetic sensor, outside-model
@@ -245,8 +251,10 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
         near = sub.points[np.linalg.norm(sub.points - c, axis=1) <= config.context_mm]
         if len(near) >= 50:
             R0 = hotelling_rotation(near[np.linalg.norm(near - c, axis=1) <= 0.6 * config.context_mm])
-            coarse.append(max((fit_face_model(near, T @ R0, -(T @ R0) @ c, config.coarse) for T in trials),
-                              key=lambda f: f.inlier_fraction))
+            coarse += [fit_face_model(near, T @ R0, -(T @ R0) @ c, config.coarse) for T in trials]
+    # every start's placement stays (those ending within `separation_mm` of a better one are dropped below): on a
+    # face with a hand over one cheek, the start that fitted best slid onto the hand, and one that fitted a little
+    # worse was the face
     # on quantised depth nearly every placement fits the rigid mean face, so those with a nose standing out of
     # the scan where the mean face puts it go first (the same test that decides below)
     around = Neighbours(scan, config)
@@ -269,13 +277,16 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
     # coarse fit), the full model fitting with a likely identity and the seen share, less the head penalty
     shaped = [(f, c, nose_heights(around.points(f, _heights_reach(config)), f, config),
                seen_share(scan, f, config, around)) for f, c in zip(fits, finalists)]
-    best_rms = min((f.rms_mm for f in fits if np.isfinite(f.rms_mm)), default=0.0)
+    face_shaped = lambda f, h, seen: (is_nose(h, config) and seen[1] >= config.min_seen
+                                      and f.inlier_fraction >= config.min_inliers)
+    best_rms = min((f.rms_mm for f, _, h, seen in shaped if face_shaped(f, h, seen) and np.isfinite(f.rms_mm)),
+                   default=0.0)  # the smoothest face-shaped placement's: a smoother one that is no face (hair, the
+    #                             back of a head) sets no bar
     shaped.sort(key=lambda x: -(x[1].inlier_fraction + placement_score(x[0], config) + x[3][0]
                                 + prominence(x[2], config) - head_penalty(x[0], sub, crown, config)
                                 - (config.rms_weight * rms_excess(x[0].rms_mm, best_rms, config.rms_tolerance)
                                    if config.rms_weight else 0.0)))
-    passing = [(f, h[0]) for f, _, h, seen in shaped
-               if is_nose(h, config) and seen[1] >= config.min_seen and f.inlier_fraction >= config.min_inliers]
+    passing = [(f, h[0]) for f, _, h, seen in shaped if face_shaped(f, h, seen)]
     if not passing:
         fit, _, (protrusion, dome), (_, seen) = shaped[0]
         if fit.inlier_fraction < config.min_inliers:
@@ -403,14 +414,24 @@ def silhouette_candidates(sub: FaceScan, config: DetectConfig = DetectConfig()) 
 
 
 def head_penalty(fit: ModelFit, sub: FaceScan, crown: np.ndarray, config: DetectConfig = DetectConfig()) -> float:
-    """Penalty of a placement whose nose is not where a nose sits below the top of a head (Mian et al. 2007 also
-    take faces as upright): `head_weight` per 50 mm that the crown above it is nearer than `crown_mm[0]` or
-    farther than `crown_mm[1]`. The crown is that of the sub-sampled point nearest the fitted nose tip."""
+    """Penalty of a placement that is not an upright head (Mian et al. 2007 also take faces as upright):
+    `head_weight` per 50 mm that the crown above its nose is nearer than `crown_mm[0]` or farther than `crown_mm[1]`
+    (the crown is that of the sub-sampled point nearest the fitted nose tip), and per `max_roll_deg` that the
+    face is rolled beyond `max_roll_deg` (`roll_deg`)."""
     nose = fit.landmarks["nose_tip"]
     i = int(np.argmin(np.linalg.norm(sub.points - nose, axis=1)))
     height = crown[i] - nose[1]
     lo, hi = config.crown_mm
-    return config.head_weight * max(0.0, lo - height, height - hi) / 50.0
+    rolled = max(0.0, abs(roll_deg(fit.R)) - config.max_roll_deg) / config.max_roll_deg
+    return config.head_weight * (max(0.0, lo - height, height - hi) / 50.0 + rolled)
+
+
+def roll_deg(R: np.ndarray) -> float:
+    """How far (degrees) a placement x -> R x + t turns the face's up direction about the line of sight, from the
+    scan's +y (`orient` has made the scan upright); 0 where the face looks up or down so steeply that its up
+    direction hardly shows in the image (less than half of it)."""
+    up = R[1]  # the frontal frame's y axis in scan coordinates
+    return float(np.degrees(np.arctan2(-up[0], up[1]))) if np.hypot(up[0], up[1]) >= 0.5 else 0.0
 
 
 class Neighbours:
