@@ -587,8 +587,8 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
 
     config = PreprocessConfig.load(config_file) if config_file else PreprocessConfig()
     options = read_settings(method_config) if method_config else None
+    records = scan_records(data, subject, gallery_only)  # bad input is one line, before the cache's first-use note
     cache = _cache_folder(cache)
-    records = scan_records(data, subject, gallery_only)
     with Engine.create(jobs, scheduler) as engine:
         matcher = _gallery_matcher(gallery) if method is None and not (options or train or model) else None
         if matcher is None:
