@@ -249,6 +249,11 @@ def _preprocess_outputs(out: Path) -> list[str]:
     return ["landmarks.csv", *(name for name in faces if Path(name).suffix in (".npz", ".ply"))]
 
 
+def _to_stderr(line: str) -> None:
+    """One line of information or warning for the user, on stderr (what a learnt method learnt from, ...)."""
+    click.echo(line, err=True)
+
+
 def _cache_folder(cache: str | None) -> "str | Path":
     """--cache, or else the default preprocessing cache, whose place is said (one line on stderr) when a command
     first makes it."""
@@ -537,7 +542,7 @@ def evaluate(data, method, method_config, train, model, out, overwrite, protocol
             config=config, options=options, train=train, model=model,
             cascade=_cascade_config(cascade, shortlist, screen), intrinsics=intrinsics, bootstrap=bootstrap, seed=seed,
             overwrite=overwrite,  # an earlier run in --out is refused before any work
-            echo=lambda line: click.echo(line, err=True))  # what a learnt method learnt from, --train unused
+            echo=_to_stderr)  # what a learnt method learnt from, --train unused
     _print_metrics(m)
     click.echo(f"report: {Path(out) / 'report.html'}")
 
@@ -593,7 +598,7 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
         matcher = _gallery_matcher(gallery) if method is None and not (options or train or model) else None
         if matcher is None:
             matcher, _ = trained_matcher(method or DEFAULT_METHOD, options, train=train, model=model, workers=engine,
-                                         cache=cache, config=config, echo=lambda line: click.echo(line, err=True))
+                                         cache=cache, config=config, echo=_to_stderr)
         with GalleryStore(gallery, create=True) as store:
             _note_new_method(store, matcher)
             with tqdm(total=len(records), unit="scan", desc="enrolling") as bar:
@@ -1049,7 +1054,7 @@ def serve(gallery, keys_file, host, port, jobs, scheduler, method, method_config
     run(gallery, keys_file, host, port, jobs, scheduler, method,
         read_settings(method_config) if method_config else None,
         PreprocessConfig.load(config_file) if config_file else None, settings, max_points, audit,
-        ssl_certfile, ssl_keyfile, echo=lambda line: click.echo(line, err=True))
+        ssl_certfile, ssl_keyfile, echo=_to_stderr)
 
 
 @main.group()
@@ -1271,7 +1276,7 @@ def demo(subjects, scans, methods, out, jobs, seed):
         click.echo(f"\n== {name}" + (f" (trained on {out / 'train'})" if name in learnt else ""))
         m = run(out / "data", name, out / name, jobs=jobs, cache=out / "cache",
                 train=out / "train" if name in learnt else None, overwrite=True,  # its own runs: made again
-                echo=lambda line: click.echo(line, err=True))
+                echo=_to_stderr)
         _print_metrics(m)
     compare_runs([out / name for name in names], out / "compare", overwrite=True)  # its own comparison
     click.echo(f"\nreports: {out / 'compare' / 'compare.html'} (all methods), {out}/<method>/report.html")
