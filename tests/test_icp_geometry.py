@@ -79,3 +79,22 @@ def test_least_eigenvector_agrees_with_lapack():
         e = _least_eigenvector(A)
         assert np.linalg.norm(e) == pytest.approx(1.0)
         assert e @ A @ e == pytest.approx(np.linalg.eigvalsh(A)[0])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_within_ball_selects_exactly_the_points_numpy_selects(seed):
+    """The compiled ball test replaces `np.linalg.norm(points - centre, axis=1) <= radius` in the face detector; the
+    detections stay the same only if it selects the very same points, those lying on the sphere included."""
+    from facerec3d.geometry.ball import within_ball
+
+    rng = np.random.default_rng(seed)
+    centre = rng.normal(0, 10, 3)
+    points = rng.normal(0, 60, (5000, 3))
+    on_sphere = centre + 55.0 * points[:1000] / np.linalg.norm(points[:1000], axis=1, keepdims=True)
+    points = np.concatenate([points, on_sphere, np.round(points[:1000])])
+    for radius in (0.0, 10.0, 55.0, 1e6):
+        expected = np.linalg.norm(points - centre, axis=1) <= radius
+        got = within_ball(points, centre, radius)
+        assert got.dtype == bool and got.shape == expected.shape
+        assert np.array_equal(got, expected), radius
+    assert 0 < within_ball(points, centre, 55.0).sum() < len(points)

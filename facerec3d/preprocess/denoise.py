@@ -14,6 +14,7 @@ import numpy as np
 from numba import njit
 from scipy import ndimage
 
+from facerec3d.geometry.ball import within_ball
 from facerec3d.preprocess.sampling import Sampling
 from facerec3d.scan import FaceScan
 
@@ -163,7 +164,7 @@ def dequantise(scan: FaceScan, raw: FaceScan, step_mm: float, center: np.ndarray
     noise exceeds the steps, or `rounds` is 0."""
     if config.rounds == 0 or step_mm <= 0 or scan.n_points == 0 or scan.grid is None:
         return scan
-    near = np.linalg.norm(scan.points - np.asarray(center), axis=1) <= radius_mm
+    near = within_ball(scan.points, center, radius_mm)
     if near.sum() < 10:
         return scan
     lo_rc, hi_rc = scan.grid[near].min(axis=0), scan.grid[near].max(axis=0) + 1

@@ -34,6 +34,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from facerec3d.errors import FailureToAcquire, short_of
+from facerec3d.geometry.ball import within_ball
 from facerec3d.geometry.transforms import rotation_from_euler
 from facerec3d.preprocess.pose import ModelFit, ModelFitConfig, fit_face_model, hotelling_rotation
 from facerec3d.scan import FaceScan
@@ -248,9 +249,9 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
     coarse: list[ModelFit] = []
     for i, trials in zip(cands, starts):
         c = sub.points[i]
-        near = sub.points[np.linalg.norm(sub.points - c, axis=1) <= config.context_mm]
+        near = sub.points[within_ball(sub.points, c, config.context_mm)]
         if len(near) >= 50:
-            R0 = hotelling_rotation(near[np.linalg.norm(near - c, axis=1) <= 0.6 * config.context_mm])
+            R0 = hotelling_rotation(near[within_ball(near, c, 0.6 * config.context_mm)])
             coarse += [fit_face_model(near, T @ R0, -(T @ R0) @ c, config.coarse) for T in trials]
     # every start's placement stays (those ending within `separation_mm` of a better one are dropped below): on a
     # face with a hand over one cheek, the start that fitted best slid onto the hand, and one that fitted a little
@@ -450,8 +451,8 @@ class Neighbours:
         """The scan's points within `radius_mm` of the fitted nose tip (3D), in scan order: exactly those when
         `exact`, else those and the few within 1 mm more (for tests that cut at `radius_mm` in their own frame,
         whose rounding may differ)."""
-        d = np.linalg.norm(self.scan.points - fit.landmarks["nose_tip"], axis=1)  # all of them: a ball query's
-        return self.scan.points[d <= (radius_mm if exact else radius_mm + 1.0)]  # index lists cost more
+        nose = fit.landmarks["nose_tip"]
+        return self.scan.points[within_ball(self.scan.points, nose, radius_mm if exact else radius_mm + 1.0)]
 
 
 def shows_nose(around: Neighbours, fit: ModelFit, config: DetectConfig = DetectConfig()) -> bool:
@@ -549,7 +550,7 @@ def nose_heights(points: np.ndarray, fit: ModelFit, config: DetectConfig = Detec
     dome height is +inf when the ring is not whole (a face in profile). Measured on the scan only, so a face model
     bent to fit a wall does not make a nose."""
     p = points @ fit.R.T + fit.t
-    p = p[np.linalg.norm(p, axis=1) <= _heights_reach(config)]
+    p = p[within_ball(p, np.zeros(3), _heights_reach(config))]
     r = np.linalg.norm(p[:, :2], axis=1)
     tip = p[r <= config.tip_radius_mm]
     if len(tip) < 3:  # a nose in profile whose rim pixels are gone: the points nearest its axis, within twice that
@@ -579,4 +580,4 @@ def is_nose(heights: tuple[float, float], config: DetectConfig = DetectConfig())
 
 def crop_sphere(scan: FaceScan, center: np.ndarray, radius_mm: float = 80.0) -> FaceScan:
     """The points within `radius_mm` of `center` (§8.5.1)."""
-    return scan.subset(np.linalg.norm(scan.points - np.asarray(center), axis=1) <= radius_mm)
+    return scan.subset(within_ball(scan.points, center, radius_mm))

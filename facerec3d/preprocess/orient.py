@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from facerec3d.geometry.ball import within_ball
 from facerec3d.geometry.transforms import rotation_from_euler
 from facerec3d.preprocess.detect import DetectConfig, Neighbours, nose_candidates, shows_nose
 from facerec3d.preprocess.pose import fit_face_model, hotelling_rotation, rotation_to_z
@@ -114,10 +115,10 @@ def upright_fit(grid_scan: FaceScan, config: OrientConfig = OrientConfig(),
     rigid = []
     for i in cands[: config.nose_candidates]:
         c = sub.points[i]
-        near = sub.points[np.linalg.norm(sub.points - c, axis=1) <= detect.context_mm]
+        near = sub.points[within_ball(sub.points, c, detect.context_mm)]
         if len(near) < 50:
             continue
-        R0 = hotelling_rotation(near[np.linalg.norm(near - c, axis=1) <= 0.6 * detect.context_mm])
+        R0 = hotelling_rotation(near[within_ball(near, c, 0.6 * detect.context_mm)])
         for roll in config.rolls:
             T = rotation_from_euler(0.0, 0.0, roll) @ R0
             fit = fit_face_model(near, T, -T @ c, detect.coarse)
