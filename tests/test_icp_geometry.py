@@ -98,3 +98,12 @@ def test_within_ball_selects_exactly_the_points_numpy_selects(seed):
         assert got.dtype == bool and got.shape == expected.shape
         assert np.array_equal(got, expected), radius
     assert 0 < within_ball(points, centre, 55.0).sum() < len(points)
+
+
+def test_nearest_index_is_numpys_argmin_of_the_distances_first_of_equals():
+    from facerec3d.geometry.ball import nearest_index
+
+    rng = np.random.default_rng(3)
+    points = np.round(rng.normal(0, 30, (3000, 3)))  # on a 1 mm lattice: many equal distances
+    for centre in rng.normal(0, 30, (50, 3)).tolist() + [[0.0, 0.0, 0.0], [0.5, 0.5, 0.5]]:
+        assert nearest_index(points, centre) == int(np.argmin(np.linalg.norm(points - centre, axis=1)))

@@ -188,6 +188,36 @@ def test_the_upright_head_prior_counts_a_rolled_face():
     assert tilted == pytest.approx(cfg.head_weight * (74.0 - cfg.max_roll_deg) / cfg.max_roll_deg, rel=0.05)
     assert roll_deg(rotation_from_euler(0.0, 89.0, 60.0).T) == 0.0
 
+@pytest.mark.parametrize("seed", range(4))
+def test_the_finalists_are_those_of_the_full_ranking_though_the_nose_test_stops_early(seed):
+    """`detect.best_distinct` gives the same first placement and finalists as sorting every placement with those
+    showing a nose first and keeping the first distinct ones (the detector's ranking until December 2026), while
+    testing the nose of fewer placements when enough distinct ones pass early."""
+    from types import SimpleNamespace
+
+    from facerec3d.preprocess.detect import best_distinct
+
+    rng = np.random.default_rng(seed)
+    tips = rng.uniform(-80, 80, (60, 3))
+    tips[20:40] = tips[:20] + rng.normal(0, 5, (20, 3))  # near repeats, as starts converging on one place give
+    placements = [SimpleNamespace(landmarks={"nose_tip": t}, nose=bool(rng.random() < share))
+                  for t, share in zip(tips, rng.uniform(0.1, 0.9, 60))]
+    rare = [SimpleNamespace(landmarks=f.landmarks, nose=i in (5, 17)) for i, f in enumerate(placements)]
+    for count, placements in [(c, placements) for c in (1, 3, 8, 100)] + [(8, rare), (100, rare)]:
+        reference = sorted(placements, key=lambda f: not f.nose)  # stable: the ranking within each group is kept
+        expected = []
+        for f in reference:
+            if all(np.linalg.norm(f.landmarks["nose_tip"] - g.landmarks["nose_tip"]) > 25.0 for g in expected):
+                expected.append(f)
+        tested = []
+        first, finalists = best_distinct(placements, lambda f: tested.append(f) or f.nose, 25.0, count)
+        assert first is reference[0]
+        assert [id(f) for f in finalists] == [id(f) for f in expected[:count]]
+        if count <= 3:
+            assert len(tested) < len(placements)
+    assert best_distinct([], lambda f: True, 25.0, 8) == (None, [])
+
+
 def test_a_rougher_fit_is_ranked_down_by_its_relative_excess_whatever_the_sensor_noise():
     """`detect.rms_excess`: how much a placement's fit residue exceeds the best placement's, as a fraction beyond a
     tolerance, so a laser scanner's 0.2 mm and a Kinect's 0.7 mm faces are treated alike (on rap3df-2019 hair and the

@@ -34,7 +34,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from facerec3d.errors import FailureToAcquire, short_of
-from facerec3d.geometry.ball import within_ball
+from facerec3d.geometry.ball import nearest_index, within_ball
 from facerec3d.geometry.transforms import rotation_from_euler
 from facerec3d.preprocess.pose import ModelFit, ModelFitConfig, fit_face_model, hotelling_rotation
 from facerec3d.scan import FaceScan
@@ -259,18 +259,16 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
     # on quantised depth nearly every placement fits the rigid mean face, so those with a nose standing out of
     # the scan where the mean face puts it go first (the same test that decides below)
     around = Neighbours(scan, config)
-    coarse.sort(key=lambda f: (not shows_nose(around, f, config), -f.inlier_fraction + head_penalty(f, sub, crown, config)))
-    if not coarse or coarse[0].inlier_fraction < config.min_coarse_inliers:
-        why = "no face-like surface found" if not coarse else (
-            f"no face fits: at best {coarse[0].inlier_fraction:.0%} of the points near a nose candidate fit a face")
+    coarse.sort(key=lambda f: -f.inlier_fraction + head_penalty(f, sub, crown, config))
+    first, finalists = best_distinct(coarse, lambda f: shows_nose(around, f, config), config.separation_mm,
+                                     config.finalists)
+    if first is None or first.inlier_fraction < config.min_coarse_inliers:
+        why = "no face-like surface found" if first is None else (
+            f"no face fits: at best {first.inlier_fraction:.0%} of the points near a nose candidate fit a face")
         raise FailureToAcquire(why, scan.meta.path)
     # the best distinct placements get a full fit (pose, identity, expression)
-    finalists: list[ModelFit] = []
-    for f in coarse:
-        if all(np.linalg.norm(f.landmarks["nose_tip"] - g.landmarks["nose_tip"]) > config.separation_mm for g in finalists):
-            finalists.append(f)
     fits = []
-    for f in finalists[: config.finalists]:
+    for f in finalists:
         near = around.points(f, config.context_mm, exact=True)
         fits.append(fit_face_model(near, f.R, f.t, config.model))
     # the best face-shaped placement wins: a nose standing out of the scanned surface (`nose_heights`) and a
@@ -309,6 +307,31 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
     fit, protrusion = passing[0]
     return Detection(fit.landmarks["nose_tip"], fit.R, fit.t, fit.landmarks, fit.rms_mm, fit.inlier_fraction,
                      protrusion, fit.coefficients)
+
+
+def best_distinct(ranked: list[ModelFit], passes, separation_mm: float,
+                  count: int) -> tuple[ModelFit | None, list[ModelFit]]:
+    """(the first placement, the first `count` distinct ones) of `ranked` reordered with those that `passes` first
+    (a stable partition), distinct meaning a nose tip more than `separation_mm` from every earlier one's. The test is
+    made only as far down the ranking as needed: once `count` distinct placements pass, no later one can come
+    before them."""
+    passing, failing = [], []
+    distinct: list[ModelFit] = []
+    for f in ranked:
+        if not passes(f):
+            failing.append(f)
+            continue
+        passing.append(f)
+        if all(np.linalg.norm(f.landmarks["nose_tip"] - g.landmarks["nose_tip"]) > separation_mm for g in distinct):
+            distinct.append(f)
+            if len(distinct) == count:
+                return passing[0], distinct
+    for f in failing:
+        if len(distinct) == count:
+            break
+        if all(np.linalg.norm(f.landmarks["nose_tip"] - g.landmarks["nose_tip"]) > separation_mm for g in distinct):
+            distinct.append(f)
+    return (passing or failing or [None])[0], distinct
 
 
 def crown_heights(sub: FaceScan, config: DetectConfig = DetectConfig()) -> np.ndarray:
@@ -420,7 +443,7 @@ def head_penalty(fit: ModelFit, sub: FaceScan, crown: np.ndarray, config: Detect
     (the crown is that of the sub-sampled point nearest the fitted nose tip), and per `max_roll_deg` that the
     face is rolled beyond `max_roll_deg` (`roll_deg`)."""
     nose = fit.landmarks["nose_tip"]
-    i = int(np.argmin(np.linalg.norm(sub.points - nose, axis=1)))
+    i = nearest_index(sub.points, nose)
     height = crown[i] - nose[1]
     lo, hi = config.crown_mm
     rolled = max(0.0, abs(roll_deg(fit.R)) - config.max_roll_deg) / config.max_roll_deg
