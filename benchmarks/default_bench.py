@@ -45,15 +45,19 @@ SETS = {  # name: (sensor profile, identities)
 }
 
 
+def set_config(name: str, subjects: int, scans: int, **fields) -> DatasetConfig:
+    """The generator's settings of set `name` (its sensor and identities), `subjects` x `scans`."""
+    sensor, identities = SETS[name]
+    return DatasetConfig(subjects=subjects, scans=scans, scanner=sensor_profile(sensor),
+                         identity=identity_profile(identities), **fields)
+
+
 def training_set(data: Path, name: str, subjects: int, scans: int) -> Path:
     """The training set of learnt methods for set `name`: other people (subjects from 1000, seed 8) taken by the same
     sensor, with the same identities, `subjects` x `scans`; written once."""
-    sensor, identities = SETS[name]
     root = data / f"{name}-train-{subjects}x{scans}"
     if not (root / "manifest.csv").is_file():
-        write_dataset(root, DatasetConfig(subjects=subjects, scans=scans, first_subject=1000, seed=8,
-                                          scanner=sensor_profile(sensor), identity=identity_profile(identities)),
-                      "abs", progress=False)
+        write_dataset(root, set_config(name, subjects, scans, first_subject=1000, seed=8), "abs", progress=False)
     return root
 
 
@@ -95,12 +99,9 @@ def main(argv=None) -> int:
     table: dict[str, dict[str, float]] = {label: {} for label, _, _ in specs}
     eers: dict[str, dict[str, float]] = {label: {} for label, _, _ in specs}
     for name in filter(None, args.sets.split(",")):
-        sensor, identities = SETS[name]
         root = args.data / f"{name}-{args.subjects}x{args.scans}"
         if not (root / "manifest.csv").is_file():
-            cfg = DatasetConfig(subjects=args.subjects, scans=args.scans, seed=7,
-                                scanner=sensor_profile(sensor), identity=identity_profile(identities))
-            write_dataset(root, cfg, "abs", progress=False)
+            write_dataset(root, set_config(name, args.subjects, args.scans, seed=7), "abs", progress=False)
         for label, method, options in specs:
             train = training_set(args.data, name, args.subjects, args.scans) \
                 if make_matcher(method, options).needs_training else None

@@ -59,7 +59,7 @@ import numpy as np
 from facerec3d.errors import FaceRec3DError
 from facerec3d.matching.base import Matcher, Template
 from facerec3d.matching.checks import check_template
-from facerec3d.matching.registry import stored_matcher
+from facerec3d.matching.registry import restore_state, stored_matcher
 from facerec3d.preprocess.pipeline import PreprocessConfig
 
 FORMAT = "facerec3d-gallery-2"
@@ -461,10 +461,8 @@ class GalleryStore:
                 raise GalleryError(f"{self.path}: the matcher's learnt array {name!r} is damaged: {e}") from None
         state = json.loads(self._require("state"))
         if arrays or state:
-            try:
-                matcher.set_state(arrays, state)
-            except (ValueError, KeyError, TypeError) as e:  # learnt arrays missing or of the wrong shape
-                raise GalleryError(f"{self.path}: the matcher's learnt state is not usable: {e}") from None
+            restore_state(matcher, arrays, state,
+                          lambda why: GalleryError(f"{self.path}: the matcher's learnt state is not usable: {why}"))
         return matcher
 
     def _require(self, key: str) -> str:

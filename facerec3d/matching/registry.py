@@ -54,11 +54,18 @@ def load_matcher(path: str | PathLike) -> Matcher:
         options, state = t.attrs["options"], t.attrs["state"]
     except (OSError, ValueError, KeyError) as e:
         raise FaceRec3DError(f"{path}: not a facerec3d model file ({e})") from None
-    matcher = stored_matcher(t.method, options)
+    return restore_state(stored_matcher(t.method, options), t.arrays, state,
+                         lambda why: FaceRec3DError(f"{path}: not a usable {t.method} model ({why})"))
+
+
+def restore_state(matcher: Matcher, arrays: Mapping[str, Any], state: Mapping[str, Any],
+                  error: Callable[[str], Exception]) -> Matcher:
+    """The matcher with what it learnt set back (`Matcher.set_state`); `error(reason)` is raised, one line, when the
+    stored arrays are missing or of the wrong shape."""
     try:
-        matcher.set_state(t.arrays, state)
-    except (ValueError, KeyError, TypeError) as e:  # learnt arrays missing or of the wrong shape
-        raise FaceRec3DError(f"{path}: not a usable {t.method} model ({e})") from None
+        matcher.set_state(arrays, state)
+    except (ValueError, KeyError, TypeError) as e:
+        raise error(str(e)) from None
     return matcher
 
 
