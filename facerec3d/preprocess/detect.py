@@ -317,19 +317,21 @@ def best_distinct(ranked: list[ModelFit], passes, separation_mm: float,
     before them."""
     passing, failing = [], []
     distinct: list[ModelFit] = []
+    new = lambda f: all(np.linalg.norm(f.landmarks["nose_tip"] - g.landmarks["nose_tip"]) > separation_mm
+                        for g in distinct)
     for f in ranked:
         if not passes(f):
             failing.append(f)
             continue
         passing.append(f)
-        if all(np.linalg.norm(f.landmarks["nose_tip"] - g.landmarks["nose_tip"]) > separation_mm for g in distinct):
+        if new(f):
             distinct.append(f)
             if len(distinct) == count:
                 return passing[0], distinct
     for f in failing:
         if len(distinct) == count:
             break
-        if all(np.linalg.norm(f.landmarks["nose_tip"] - g.landmarks["nose_tip"]) > separation_mm for g in distinct):
+        if new(f):
             distinct.append(f)
     return (passing or failing or [None])[0], distinct
 
