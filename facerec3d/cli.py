@@ -683,7 +683,7 @@ def identify(probe, gallery, k, config_file, cache, intrinsics, cascade, shortli
 @click.option("--gallery", "gallery", type=click.Path(dir_okay=False), help="Gallery store (or --server).")
 @click.option("--claim", required=True, help="The claimed subject ID.")
 @click.option("--threshold", type=float, help="Accept scores >= this (default: the gallery's calibrated threshold, "
-              "see 'gallery STORE calibrate'; else for icp -1.0 mm², the EER point of synthetic laser scans).")
+              "see 'gallery STORE calibrate'; else for icp -1.8 mm², the EER point of synthetic laser scans).")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False),
               help="Preprocessing settings; must be the gallery's (default: the gallery's).")
 @_CACHE_OPTION

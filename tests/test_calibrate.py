@@ -1,6 +1,6 @@
 """A gallery's verification threshold calibrated on its own sensor's scans, recorded and used by verify.
 
-The −1.0 mm² ICP default sits at the EER of synthetic laser scans; on Kinect-class depth (4–8 mm steps) genuine
+The −1.8 mm² ICP default sits at the EER of synthetic laser scans; on Kinect-class depth (4–8 mm steps) genuine
 pairs score well below it, so it rejects genuine claims: a calibrated gallery must accept them at a known FMR."""
 
 import numpy as np

@@ -146,3 +146,48 @@ def test_fusion_fits_members_and_keeps_their_state(faces):
     other.members[0] = _Learner()
     other.set_state(arrays, attrs)
     np.testing.assert_array_equal(other.members[0].learnt, [3])
+
+
+def test_galleries_stored_before_the_plane_capped_score_keep_the_books_score(tmp_path):
+    """ICP's plane-capped score (plane_cap_mm, December 2026) changes what a score means, so a calibrated threshold
+    too: options stored before it existed (an icp, region-icp or fusion gallery) load with it off, options stored
+    now keep it, and options a user gives take today's default."""
+    import json
+    import sqlite3
+
+    from facerec3d.gallery.store import GalleryStore
+    from facerec3d.matching.registry import stored_matcher
+    from facerec3d.preprocess import PreprocessConfig
+
+    def caps(matcher):
+        members = matcher.members if isinstance(matcher, FusionMatcher) else [matcher]
+        return [m.config.plane_cap_mm if isinstance(m, ICPMatcher) else m.config.icp.plane_cap_mm
+                for m in members if isinstance(m, (ICPMatcher, RegionICPMatcher))]
+
+    icp_today = make_matcher("icp").options()
+    assert caps(stored_matcher("icp", icp_today)) == [3.0]
+    assert caps(stored_matcher("icp", {k: v for k, v in icp_today.items() if k != "plane_cap_mm"})) == [0.0]
+    region_today = make_matcher("region-icp").options()
+    region_old = {**region_today, "icp": {k: v for k, v in region_today["icp"].items() if k != "plane_cap_mm"}}
+    assert caps(stored_matcher("region-icp", region_today)) == [3.0]
+    assert caps(stored_matcher("region-icp", region_old)) == [0.0]
+    assert caps(make_matcher("region-icp", {"icp": {"seed": 1}})) == [3.0]
+
+    path = tmp_path / "fusion.sqlite"
+    with GalleryStore(path, create=True) as store:
+        store.bind(PreprocessConfig(), make_matcher("fusion"))
+    with GalleryStore(path) as store:
+        assert caps(store.matcher()) == [3.0, 3.0]
+        store.check_matcher(make_matcher("fusion"))  # a gallery stored today takes today's default matcher
+    db = sqlite3.connect(path)
+    with db:
+        options = json.loads(db.execute("SELECT value FROM meta WHERE key = 'options'").fetchone()[0])
+        assert options["member_options"]["icp"] == {"plane_cap_mm": 3.0}
+        options["member_options"] = {}  # as a fusion stored its options before
+        db.execute("UPDATE meta SET value = ? WHERE key = 'options'", (json.dumps(options),))
+    db.close()
+    with GalleryStore(path) as store:
+        old = store.matcher()
+    assert caps(old) == [0.0, 0.0]
+    assert stored_matcher("fusion", old.options()).options() == old.options()  # and it stays so when stored again
+    assert caps(make_matcher("fusion", {"member_options": {}})) == [3.0, 3.0]

@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from facerec3d import FaceScan, ScanMeta
-from facerec3d.datasets.frontal import face_mesh, on_preprocessing_grid
+from facerec3d.datasets.frontal import face_mesh, frontal_face, on_preprocessing_grid
 from facerec3d.geometry.normals import estimate_normals
 from facerec3d.geometry.transforms import rigid_fit, rotation_between, rotation_from_euler
 from facerec3d.geometry.transforms import rigid_from_covariance as _fit_rigid
@@ -200,8 +200,9 @@ def exact_mse(probe: ProbeData, gallery: GalleryIndex, result, config: ICPConfig
 
 @pytest.mark.parametrize("variant", ["point-to-point", "point-to-plane"])
 def test_final_mse_is_exact_closest_point_mse(mesh, variant):
-    """The voxel lookup is approximate, but the reported MSE must be that of the exact closest points."""
-    config = ICPConfig(variant=variant)
+    """The voxel lookup is approximate, but the reported MSE must be that of the exact closest points (the book's
+    score, plane_cap_mm = 0)."""
+    config = ICPConfig(variant=variant, plane_cap_mm=0.0)
     gallery = GalleryIndex.from_scan(grid_scan(mesh), config)
     rng = np.random.default_rng(8)
     for identity in (1, 2):  # genuine and impostor
@@ -323,8 +324,8 @@ def test_capped_score_charges_probe_points_without_a_partner(mesh):
     gallery_half = gallery_scan.subset(whole[:, 0] < 0)  # the gallery keeps only the face's right half
     half = gallery_half.points
     probe = grid_scan(mesh)
-    kept = ICPMatcher(ICPConfig(fine_points=0))
-    capped = ICPMatcher(ICPConfig(fine_points=0, score_cap=3.0))
+    kept = ICPMatcher(ICPConfig(fine_points=0, plane_cap_mm=0.0))
+    capped = ICPMatcher(ICPConfig(fine_points=0, score_cap=3.0, plane_cap_mm=0.0))
     res = GalleryIndex.from_scan(gallery_half, capped.config).resolution
     # same face, all of it in the gallery: both near 0
     assert -capped.score(probe, capped.enroll(gallery_scan)) < 0.01
@@ -333,3 +334,67 @@ def test_capped_score_charges_probe_points_without_a_partner(mesh):
     assert share > 0.3
     assert -kept.score(probe, kept.enroll(gallery_half)) < 0.05
     assert -capped.score(probe, capped.enroll(gallery_half)) == pytest.approx(share * (3.0 * res) ** 2, rel=0.15)
+
+
+def plane_capped_reference(probe_points: np.ndarray, index: GalleryIndex, R: np.ndarray, t: np.ndarray,
+                           reach: float, cap: float) -> float:
+    """NumPy's plane_cap_mm score: mean of min(|n_j · (x − g_j)|, cap)² over the probe points x moved by (R, t),
+    j the closest gallery point (cap when it is farther than reach), n_j its stored normal made unit."""
+    x = probe_points @ R.T + t
+    d, j = cKDTree(index.points.astype(np.float64)).query(x)
+    n = index.normals[j].astype(np.float64)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    e = np.where(d <= reach, np.abs(np.einsum("ij,ij->i", x - index.points[j], n)), cap)
+    return float(np.mean(np.minimum(e, cap) ** 2))
+
+
+@pytest.mark.parametrize("identity, cap_mm", [(1, 1.5), (2, 1.5), (1, 5.0)])
+def test_plane_capped_score_is_the_truncated_point_to_plane_error(mesh, identity, cap_mm):
+    """plane_cap_mm: the score is −mean over every fine probe point of min(e, cap)², e the distance to the tangent
+    plane of its closest gallery point at ICP's final transform (cap without one within the final threshold T),
+    cap = min(plane_cap_mm, T), as NumPy computes it; the alignment itself is the one of the default score."""
+    gallery = grid_scan(mesh)
+    probe = frontal_face(identity, pose_deg=3.0, shift_mm=2.0, noise_mm=0.3, seed=5)
+    plain, capped = ICPMatcher(ICPConfig(seed=1, plane_cap_mm=0.0)), ICPMatcher(ICPConfig(seed=1, plane_cap_mm=cap_mm))
+    t_plain, t_capped = plain.enroll(gallery), capped.enroll(gallery)
+    a, b = plain.align(probe, t_plain), capped.align(probe, t_capped)
+    np.testing.assert_allclose(a.R, b.R)
+    np.testing.assert_allclose(a.t, b.t)
+    index = GalleryIndex.from_template(t_capped)
+    points = capped.prepare(probe).points
+    reach = capped.config.distance_end * index.resolution
+    assert reach < 5.0  # 1 mm faces: the final threshold bounds a 5 mm cap
+    want = plane_capped_reference(points, index, b.R, b.t, reach, min(cap_mm, reach))
+    assert -capped.score(probe, t_capped) == pytest.approx(want, rel=1e-6)
+    assert b.mse == pytest.approx(want, rel=1e-6)
+
+
+def test_plane_capped_score_bounds_what_a_coarse_sensor_keeps(mesh):
+    """On a coarse sensor (8 mm depth steps: the final pair threshold is 16 mm) the kept-pairs MSE keeps flying
+    pixels 12 mm off the face in its mean; the plane-capped score charges each at most cap², so the genuine face
+    stays far ahead of every other person's."""
+    gallery = grid_scan(mesh)
+    gallery = gallery.replace(meta=dataclasses.replace(gallery.meta, extra={"quality": {"depth_step_mm": 8.0}}))
+    probe = frontal_face(1, noise_mm=0.3, seed=2)
+    rng = np.random.default_rng(0)
+    spikes = rng.random(len(probe.points)) < 0.1
+    points = probe.points.copy()
+    points[spikes, 2] += rng.choice([-12.0, 12.0], spikes.sum())
+    genuine = probe.replace(points=points, normals=None)
+    others = [frontal_face(k, noise_mm=0.3, seed=2) for k in range(2, 7)]
+    plain, capped = ICPMatcher(ICPConfig(fine_points=0, plane_cap_mm=0.0)), ICPMatcher(ICPConfig(fine_points=0))
+    t_plain, t_capped = plain.enroll(gallery), capped.enroll(gallery)
+    assert GalleryIndex.from_template(t_plain).resolution == pytest.approx(8.0)
+    bound = spikes.mean() * 3.0**2 + 1.0  # the spikes at cap², the rest at a fraction of a mm²
+    assert -plain.score(genuine, t_plain) > bound
+    assert -capped.score(genuine, t_capped) < bound
+    assert -capped.score(genuine, t_capped) < 0.5 * min(-capped.score(o, t_capped) for o in others)
+
+
+def test_plane_cap_config_checks():
+    assert ICPConfig().plane_cap_mm == 3.0
+    with pytest.raises(ValueError):
+        ICPConfig(plane_cap_mm=-1.0)
+    with pytest.raises(ValueError):
+        ICPConfig(score_cap=2.0)  # each replaces the score
+    ICPConfig(score_cap=2.0, plane_cap_mm=0.0)

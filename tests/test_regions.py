@@ -10,7 +10,7 @@ from facerec3d.facemodel import load_model
 from facerec3d.datasets.synthetic import ScannerConfig, quick_scan
 from facerec3d.matching.base import rank
 from facerec3d.matching.expression import expression_mobility
-from facerec3d.matching.icp import ICPMatcher
+from facerec3d.matching.icp import ICPConfig, ICPMatcher
 from facerec3d.matching.registry import load_matcher, make_matcher
 from facerec3d.matching.regions import RegionICPConfig, RegionICPMatcher, region_masks
 from facerec3d.preprocess import Preprocessor
@@ -109,9 +109,12 @@ def test_region_icp_identifies_expressive_probes(faces):
 
 def test_rigid_region_beats_whole_face_icp_margin(faces):
     """The genuine score's lead over the best impostor (z-score units) grows when the expression-driven
-    points are masked out, against whole-face ICP's on the same probes."""
+    points are masked out, against whole-face ICP's on the same probes, both with the book's score (−MSE of the
+    kept pairs, plane_cap_mm = 0: the plane-capped score caps those points by itself)."""
     gallery, probes = faces
-    icp, masked = ICPMatcher(), RegionICPMatcher(RegionICPConfig(regions=("rigid",), normalisation="none"))
+    book = ICPConfig(plane_cap_mm=0.0)
+    icp = ICPMatcher(book)
+    masked = RegionICPMatcher(RegionICPConfig(regions=("rigid",), normalisation="none", icp=book))
     leads = []
     for m in (icp, masked):
         templates = [m.enroll(g) for g in gallery]

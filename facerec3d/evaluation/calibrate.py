@@ -1,9 +1,9 @@
 """A gallery's verification threshold, calibrated on its own sensor's data (§8.4: the operating point of a
 verification system is a threshold on its score distribution).
 
-A fixed default cannot suit every sensor: ICP's −MSE of a genuine pair is ~0.3 mm² on 0.7 mm laser scans and
-1–3 mm² on Kinect frames in 4–8 mm depth steps, so the −1.0 mm² that sits at the equal error rate of synthetic
-laser scans rejects most genuine Kinect claims (their EER threshold on rap3df-2019 is about −6 mm²). `calibrate`
+A fixed default cannot suit every sensor: ICP's score of a genuine pair is ~−0.3 mm² on 0.7 mm laser scans and
+−1.5 to −5 mm² on Kinect frames in 4–8 mm depth steps, so the −1.8 mm² that sits at the equal error rate of
+synthetic laser scans rejects many genuine Kinect claims (their EER threshold on rap3df-2019 is about −3.7 mm²). `calibrate`
 scores labelled scans of the gallery's own sensor against the gallery, the scan itself left out, and records in
 the store the threshold at a chosen false-match rate (FMR, the operating point access control sets), or at the
 equal error rate; `verify` and the service then use it whenever no threshold is given.

@@ -108,6 +108,18 @@ def rank(scores: np.ndarray, tiebreak: np.ndarray | None = None, tolerance: floa
     return order[np.lexsort((-np.asarray(tiebreak, dtype=np.float64)[order], group))]
 
 
+def with_added(added: Mapping[str, Any], stored: Mapping[str, Any]) -> dict[str, Any]:
+    """Stored options with the fields `added` names that they lack; a nested table stored is completed field by
+    field (`Matcher.added_options`)."""
+    out = dict(stored)
+    for name, value in added.items():
+        if name not in out:
+            out[name] = value
+        elif isinstance(value, Mapping) and isinstance(out[name], Mapping):
+            out[name] = with_added(value, out[name])
+    return out
+
+
 class Matcher(ABC, Generic[P]):
     """Base class of face matchers. Subclasses set `name` and implement `enroll` and `score`; those with their
     own probe type `P` implement `prepare` and declare it (`class ICPMatcher(Matcher[ProbeData])`).
@@ -125,15 +137,15 @@ class Matcher(ABC, Generic[P]):
     cohort_scores: bool = False
     #: Config fields added after templates of this method were first stored, with the value that works as the method
     #: did before each: options stored without such a field (an older gallery or model file) take that value, not
-    #: today's default, so old templates keep meeting probes prepared their way (`from_stored`).
+    #: today's default, so old templates keep meeting probes prepared and scored their way (`from_stored`). A field
+    #: of a nested table is given as a nested table ({"icp": {"plane_cap_mm": None}}).
     added_options: dict[str, Any] = {}
 
     @classmethod
     def from_stored(cls, options: Mapping[str, Any] | None) -> "Matcher":
         """The matcher of options stored with templates (a gallery, a model file): fields missing from them that
         were added later (`added_options`) keep the behaviour of their time."""
-        options = dict(options or {})
-        return cls.from_options({**{k: v for k, v in cls.added_options.items() if k not in options}, **options})
+        return cls.from_options(with_added(cls.added_options, options or {}))
 
     @classmethod
     def from_options(cls, options: Mapping[str, Any] | None = None) -> "Matcher":

@@ -8,14 +8,15 @@ e.g. ICP and region ICP, or ICP with PCA / LDA. Its template packs the members' 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
 from facerec3d.errors import SettingsError
-from facerec3d.matching.base import GalleryNormalised, Matcher, Template, merge_shard_scores, shard_rows, shard_scores
-from facerec3d.matching.methods import make_method
+from facerec3d.matching.base import (GalleryNormalised, Matcher, Template, merge_shard_scores, shard_rows, shard_scores,
+                                     with_added)
+from facerec3d.matching.methods import make_method, method_class
 from facerec3d.matching.normalisation import check_fusion, fuse
 from facerec3d.scan import FaceScan
 
@@ -38,6 +39,28 @@ def unpack(template: Template) -> list[Template]:
         arrays[int(k)][name] = a
     return [Template(template.subject, template.scan_id, p["method"], arrays[k], p["attrs"])
             for k, p in enumerate(parts)]
+
+
+def _fields(options: Mapping[str, Any], names: Mapping[str, Any]) -> dict[str, Any]:
+    """The fields of `options` that `names` names (nested tables by nested tables)."""
+    return {k: _fields(options[k], v) if isinstance(v, Mapping) and isinstance(options[k], Mapping) else options[k]
+            for k, v in names.items() if k in options}
+
+
+def _without_defaults(options: Mapping[str, Any], names: Mapping[str, Any], defaults: Mapping[str, Any]) -> dict:
+    """`options` without the fields `names` names whose value is today's default (so that options stored today load
+    as the config they were made from), nested tables left out when nothing else is left in them."""
+    out = dict(options)
+    for k, v in names.items():
+        if k not in out or k not in defaults:
+            continue
+        if isinstance(v, Mapping) and isinstance(out[k], Mapping) and isinstance(defaults[k], Mapping):
+            out[k] = _without_defaults(out[k], v, defaults[k])
+            if not out[k]:
+                del out[k]
+        elif out[k] == defaults[k]:
+            del out[k]
+    return out
 
 
 # ----------------------------------------------------------------------------- the fusion matcher
@@ -78,6 +101,32 @@ class FusionMatcher(GalleryNormalised, Matcher[list]):
                 self.members.append(make_method(m, config.member_options.get(m)))
             except SettingsError as e:
                 raise e.within(section=f"member_options.{m}" if m in config.member_options else "members") from None
+
+    @classmethod
+    def from_stored(cls, options: Mapping[str, Any] | None) -> FusionMatcher:
+        """Stored fusion options: each member keeps the behaviour of its time too (its `added_options` where the
+        stored member options lack them; `options` stores today's values of those fields)."""
+        options = dict(options or {})
+        members = options.get("members", FusionConfig.members)
+        stored = options.get("member_options") or {}
+        if isinstance(members, (list, tuple)) and isinstance(stored, Mapping):
+            completed = {}
+            for m in members:
+                if isinstance(m, str) and ((added := method_class(m).added_options) or m in stored):
+                    today = asdict(method_class(m).config_class()) if added else {}
+                    completed[m] = _without_defaults(with_added(added, stored.get(m) or {}), added, today)
+            options["member_options"] = {m: o for m, o in completed.items() if o}
+        return super().from_stored(options)
+
+    def options(self) -> dict[str, Any]:
+        """The config, each member's options holding also the fields its method added since galleries were first
+        stored (today's values), so that a gallery stored now is told from one stored before (`from_stored`)."""
+        out = super().options()
+        given = out["member_options"]
+        for m in self.members:
+            if m.added_options:
+                given[m.name] = with_added(_fields(m.options(), m.added_options), given.get(m.name) or {})
+        return out
 
     @property
     def needs_training(self) -> bool:

@@ -129,6 +129,7 @@ class RegionICPMatcher(GalleryNormalised, Matcher[RegionProbe]):
 
     name = "region-icp"
     config_class = RegionICPConfig
+    added_options = {"icp": {"plane_cap_mm": 0.0}}  # galleries stored before ICP's plane-capped score (December 2026)
 
     def __init__(self, config: RegionICPConfig = RegionICPConfig()):
         self.config = config

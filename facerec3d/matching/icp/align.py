@@ -45,7 +45,8 @@ class ICPResult(NamedTuple):
 
     R: np.ndarray  # (3, 3) rotation
     t: np.ndarray  # (3,) mm
-    mse: float  # mm²: mean squared distance of the kept exact correspondences (inf: no match)
+    mse: float  # mm²: what the score is −1 × (inf: no match): the mean squared distance of the kept exact
+    #             correspondences, or the capped one of `score_cap` / `plane_cap_mm`
     n_correspondences: int  # kept correspondences m (of the fine probe points)
     iterations: int  # transform updates made
     converged: bool  # the MSE change fell below the tolerance
@@ -107,6 +108,7 @@ class _Params(NamedTuple):
     drop_boundary: bool
     min_overlap: float
     score_cap: float  # × res; 0: off
+    plane_cap: float  # mm; 0: off
 
 
 def _params(config: ICPConfig) -> _Params:
@@ -117,6 +119,7 @@ def _params(config: ICPConfig) -> _Params:
         -2.0 if config.max_normal_angle is None else math.cos(math.radians(config.max_normal_angle)),
         -1.0 if config.max_color_difference is None else float(config.max_color_difference) ** 2,
         bool(config.drop_boundary), float(config.min_overlap), float(config.score_cap or 0.0),
+        float(config.plane_cap_mm),
     )
 
 
@@ -141,10 +144,14 @@ def _align(probe: ProbeData, gallery: GalleryIndex, params: _Params,
 
 def _score_mse(probe: ProbeData, gallery: GalleryIndex, params: _Params, R: np.ndarray, t: np.ndarray,
                mse: float) -> float:
-    """The MSE the score is made of: the loop's (kept pairs), or with `score_cap` the capped one (`_capped_mse`)."""
-    if not params.score_cap or not np.isfinite(mse):
+    """The MSE the score is made of: the loop's (kept pairs), or with `score_cap` the capped one (`_capped_mse`), or
+    with `plane_cap_mm` the capped point-to-plane one (`_plane_capped_mse`)."""
+    if not (params.score_cap or params.plane_cap) or not np.isfinite(mse):
         return mse
     n = min(params.fine_points, len(probe.points)) if params.fine_points else len(probe.points)
+    if params.plane_cap:
+        reach = params.distance_end * gallery.resolution  # the final pair threshold
+        return _plane_capped_mse(probe.points, n, R, t, gallery, reach, min(params.plane_cap, reach))
     return _capped_mse(probe.points, n, R, t, gallery, params.score_cap * gallery.resolution)
 
 
@@ -153,6 +160,7 @@ class ICPMatcher(Matcher[ProbeData]):
 
     name = "icp"
     config_class = ICPConfig
+    added_options = {"plane_cap_mm": 0.0}  # galleries stored before the plane-capped score (December 2026)
 
     def __init__(self, config: ICPConfig = ICPConfig()):
         self.config = config
@@ -211,6 +219,25 @@ def _capped_mse(points, n, R, t, g, cap):  # pragma: no cover - compiled
     for i in range(n):
         x, y, z = _moved(R, t, points, i)
         total += nearest_within(x, y, z, cap, g)[1]  # cap² when none is nearer
+    return total / n
+
+
+@njit(cache=True)
+def _plane_capped_mse(points, n, R, t, g, reach, cap):  # pragma: no cover - compiled
+    """Mean over the first n probe points, moved by (R, t), of min(e, cap)², e = |n_j · (x − g_j)| the distance to
+    the tangent plane of the closest gallery point j (exact within `reach` mm; cap when there is none)."""
+    total = 0.0
+    for i in range(n):
+        x, y, z = _moved(R, t, points, i)
+        j, _ = closest_point(x, y, z, reach, reach, g, -1)
+        e = cap
+        if j >= 0:
+            n0, n1, n2 = g.normals[j, 0] / 127.0, g.normals[j, 1] / 127.0, g.normals[j, 2] / 127.0
+            norm = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+            if norm > 0.0:
+                e = min(abs((x - g.points[j, 0]) * n0 + (y - g.points[j, 1]) * n1 + (z - g.points[j, 2]) * n2) / norm,
+                        cap)
+        total += e * e
     return total / n
 
 

@@ -37,6 +37,12 @@ class ICPConfig:
     #                                 every fine probe point of min(d, c·res)², d its distance to the closest gallery
     #                                 point at the final transform (a truncated MSE: a probe point without a partner
     #                                 costs (c·res)², so a partial overlap no longer scores like a good fit)
+    plane_cap_mm: float = 3.0  # mm: 0 = the score above; a value c = −mean over every fine probe point of
+    #                                 min(e, cap)², e its distance to the tangent plane of its closest gallery point
+    #                                 (along that point's normal; Chen & Medioni's error) at the final transform, and
+    #                                 cap = the lesser of c and the final pair threshold (distance_end × res), also
+    #                                 the cost of a point with no gallery point within that threshold: a truncated
+    #                                 point-to-plane MSE, blind to where the two samplings fall along the surface
     probe_mirrored: bool = False  # points of the probe completed from its mirror image (`FaceScan.provenance`,
     #                               preprocess.symmetry) take part; False: the probe aligns only what its camera saw
     #                               (and hole filling interpolated) onto the gallery face, mirrored side included
@@ -49,5 +55,9 @@ class ICPConfig:
             raise ValueError("need 0 < distance_end <= distance_start")
         if self.score_cap is not None and not self.score_cap > 0:
             raise ValueError("score_cap must be positive (or None)")
+        if not self.plane_cap_mm >= 0:
+            raise ValueError("plane_cap_mm must be ≥ 0 (0: off)")
+        if self.score_cap is not None and self.plane_cap_mm:
+            raise ValueError("score_cap and plane_cap_mm each replace the score: set plane_cap_mm = 0 to use score_cap")
         if self.voxel_size <= 0 or self.coarse_points < 1 or self.fine_points < 0:
             raise ValueError("voxel_size and coarse_points must be positive, fine_points >= 0")
