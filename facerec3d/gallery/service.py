@@ -34,10 +34,10 @@ from facerec3d.scan import FaceScan
 #: need about −3.7, so calibrate; the book's −MSE of the kept pairs had −1.0 and −5.9).
 DEFAULT_THRESHOLDS: dict[str, float] = {"icp": -1.8, "fusion": 4.0, "embedding": 0.5}
 #   fusion (the default members icp, region-icp and embedding: z-scores summed, per probe over the gallery): 4.0 is
-#   near its threshold at FMR 1 % on real Kinect v2 frames (rap3df-2019, an 80-person gallery: 4.41) and above it on
-#   the 15-person synthetic sets (2.1 laser, 3.0–3.2 Kinect v2 and RealSense): a cohort-normalised score hardly
-#   depends on the sensor, where ICP's −MSE at FMR 1 % runs from −0.8 (laser) to −2.5 mm² (Kinect), but it grows
-#   slowly with the gallery's size. Galleries still calibrate their own (`gallery calibrate`).
+#   near its threshold at FMR 1 % on real Kinect v2 frames (rap3df-2019, an 80-person gallery: 4.82, 4.41 with the
+#   book's ICP score) and among those of the 15-person synthetic sets (3.8–6.5; so few impostor pairs that one moves
+#   it): a cohort-normalised score depends on the sensor less than ICP's (at FMR 1 %: −1.5 mm² on laser scans, −2.6 on
+#   the real Kinect frames), but it grows with the gallery's size. Galleries still calibrate their own.
 #   embedding (cosine of the shipped model's embeddings): 0.5 lies between its FMR-1 % thresholds on synthetic
 #   scans (about 0.4) and on the real Kinect frames (0.62, where real faces crowd together): calibrate.
 
