@@ -272,7 +272,11 @@ def test_verify_hints_when_the_default_threshold_does_not_suit_the_sensor(run, f
     assert r.exit_code == 0, r.output
     probe = str(frames / "04201" / "front_2.png")
     r = CliRunner().invoke(main, ["verify", probe, "--gallery", gallery, "--claim", "04201", "--cache", cache])
-    assert "hint: the default threshold -1 was chosen on laser scans" in r.output and "threshold_at_eer" in r.output
+    from facerec3d.gallery.service import DEFAULT_THRESHOLDS
+
+    default = DEFAULT_THRESHOLDS["icp"]
+    assert f"hint: the default threshold {default:g} was chosen on laser scans" in r.output
+    assert "threshold_at_eer" in r.output
     r = CliRunner().invoke(main, ["verify", probe, "--gallery", gallery, "--claim", "04201", "--cache", cache,
                                   "--threshold", "-20"])
     assert r.exit_code == 0 and "hint" not in r.output
