@@ -138,7 +138,7 @@ class Matcher(ABC, Generic[P]):
     #: Config fields added after templates of this method were first stored, with the value that works as the method
     #: did before each: options stored without such a field (an older gallery or model file) take that value, not
     #: today's default, so old templates keep meeting probes prepared and scored their way (`from_stored`). A field
-    #: of a nested table is given as a nested table ({"icp": {"plane_cap_mm": None}}).
+    #: of a nested table is given as a nested table ({"icp": {"plane_cap_mm": 0.0}}).
     added_options: dict[str, Any] = {}
 
     @classmethod

@@ -1,4 +1,5 @@
-"""The ICP loop (chapter §8.6.1) and the ICP matcher: align a probe to a gallery face; the score is −MSE.
+"""The ICP loop (chapter §8.6.1) and the ICP matcher: align a probe to a gallery face; the score is −MSE: by
+default the truncated point-to-plane one at the final transform (`ICPConfig.plane_cap_mm`), or the kept pairs'.
 
 Each iteration, all inside one Numba call per probe–gallery pair (the steps below, compiled inline):
   closest points → pair filters → error → stop? → transform.
@@ -156,7 +157,8 @@ def _score_mse(probe: ProbeData, gallery: GalleryIndex, params: _Params, R: np.n
 
 
 class ICPMatcher(Matcher[ProbeData]):
-    """ICP identification and verification (§8.6.1): score = −MSE (mm²), tiebreak = correspondence count."""
+    """ICP identification and verification (§8.6.1): score = −MSE (mm²; `ICPConfig.plane_cap_mm`), tiebreak =
+    correspondence count."""
 
     name = "icp"
     config_class = ICPConfig
