@@ -139,20 +139,21 @@ def _align(probe: ProbeData, gallery: GalleryIndex, params: _Params,
            init: tuple[np.ndarray, np.ndarray] | None = None) -> ICPResult:
     R0 = np.eye(3) if init is None else np.asarray(init[0], dtype=np.float64).reshape(3, 3)
     t0 = np.zeros(3) if init is None else np.asarray(init[1], dtype=np.float64).reshape(3)
-    R, t, mse, m, k, converged = _icp_loop(probe, gallery, params, np.ascontiguousarray(R0), t0)
-    return ICPResult(R, t, _score_mse(probe, gallery, params, R, t, mse), m, k, converged)
+    R, t, mse, m, k, converged, pairs = _icp_loop(probe, gallery, params, np.ascontiguousarray(R0), t0)
+    return ICPResult(R, t, _score_mse(probe, gallery, params, R, t, mse, pairs), m, k, converged)
 
 
 def _score_mse(probe: ProbeData, gallery: GalleryIndex, params: _Params, R: np.ndarray, t: np.ndarray,
-               mse: float) -> float:
+               mse: float, pairs: np.ndarray) -> float:
     """The MSE the score is made of: the loop's (kept pairs), or with `score_cap` the capped one (`_capped_mse`), or
-    with `plane_cap_mm` the capped point-to-plane one (`_plane_capped_mse`)."""
+    with `plane_cap_mm` the capped point-to-plane one (`_plane_capped_mse`, on the loop's last closest points
+    `pairs`)."""
     if not (params.score_cap or params.plane_cap) or not np.isfinite(mse):
         return mse
     n = min(params.fine_points, len(probe.points)) if params.fine_points else len(probe.points)
     if params.plane_cap:
         reach = params.distance_end * gallery.resolution  # the final pair threshold
-        return _plane_capped_mse(probe.points, n, R, t, gallery, reach, min(params.plane_cap, reach))
+        return _plane_capped_mse(probe.points, n, R, t, gallery, pairs, min(params.plane_cap, reach))
     return _capped_mse(probe.points, n, R, t, gallery, params.score_cap * gallery.resolution)
 
 
@@ -208,8 +209,8 @@ class ICPMatcher(Matcher[ProbeData]):
         m = np.empty(len(galleries), dtype=np.int64)
         eye, zero = np.eye(3), np.zeros(3)
         for i, gallery in enumerate(galleries):
-            R, t, mse, m[i], _, _ = _icp_loop(probe, gallery, self._params, eye, zero)
-            s[i] = -_score_mse(probe, gallery, self._params, R, t, mse)
+            R, t, mse, m[i], _, _, pairs = _icp_loop(probe, gallery, self._params, eye, zero)
+            s[i] = -_score_mse(probe, gallery, self._params, R, t, mse, pairs)
         return s, m
 
 
@@ -225,13 +226,14 @@ def _capped_mse(points, n, R, t, g, cap):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def _plane_capped_mse(points, n, R, t, g, reach, cap):  # pragma: no cover - compiled
+def _plane_capped_mse(points, n, R, t, g, pairs, cap):  # pragma: no cover - compiled
     """Mean over the first n probe points, moved by (R, t), of min(e, cap)², e = |n_j · (x − g_j)| the distance to
-    the tangent plane of the closest gallery point j (exact within `reach` mm; cap when there is none)."""
+    the tangent plane of the closest gallery point j = pairs[i] (the loop's last exact closest points within the
+    final threshold, at this transform; cap when there is none)."""
     total = 0.0
     for i in range(n):
         x, y, z = _moved(R, t, points, i)
-        j, _ = closest_point(x, y, z, reach, reach, g, -1)
+        j = pairs[i]
         e = cap
         if j >= 0:
             n0, n1, n2 = g.normals[j, 0] / 127.0, g.normals[j, 1] / 127.0, g.normals[j, 2] / 127.0
@@ -394,7 +396,9 @@ def _subsets(probe, g, prm):  # pragma: no cover - compiled
 
 @njit(cache=True)
 def _icp_loop(probe, g, prm, R0, t0):  # pragma: no cover - compiled
-    """The coarse-to-fine ICP loop; returns (R, t, mse, m, iterations, converged). Point-to-point solves each
+    """The coarse-to-fine ICP loop; returns (R, t, mse, m, iterations, converged, pairs), pairs[i] the closest
+    gallery point of probe point i within the last threshold at the returned transform (−1: none; exact, before the
+    pair filters: the loop stops in its fine phase, so the first fine_points hold the final ones). Point-to-point solves each
     update for the absolute transform of the original probe points; point-to-plane solves for a small motion
     of the moved points and composes that increment onto the current transform."""
     n_coarse, n_fine, use_normals, use_color = _subsets(probe, g, prm)
@@ -422,7 +426,7 @@ def _icp_loop(probe, g, prm, R0, t0):  # pragma: no cover - compiled
             else:
                 _accumulate_point_to_point(sp, sg, H, probe.points, i, g, j)
         if m < (6 if prm.point_to_plane else 3):  # too few pairs to solve for a motion
-            return R, t, np.inf, m, k, False
+            return R, t, np.inf, m, k, False, hint
         mse = sse / m  # error
         converged = abs(mse - prev) < prm.tolerance
         step = _next_step(prm, fine, converged, k, k_fine)  # stop
@@ -436,4 +440,4 @@ def _icp_loop(probe, g, prm, R0, t0):  # pragma: no cover - compiled
         else:
             R, t = _solve_point_to_point(sp, sg, H, m)
         prev, k, k_fine = mse, k + 1, k_fine + fine
-    return R, t, (mse if m >= prm.min_overlap * n_fine else np.inf), m, k, converged
+    return R, t, (mse if m >= prm.min_overlap * n_fine else np.inf), m, k, converged, hint
