@@ -2,6 +2,7 @@
 
     python benchmarks/preprocess_bench.py [--scans 60] [--subjects N] [--sensor frgc|kinect-v2|kinect-v2-8bit|realsense]
                                           [--identities model|outside-model] [--against 6c9c085] [--real DIR]
+                                          [--preprocess-config settings.toml]
 
 `--sensor` picks the synthetic scanner's sensor profile (default frgc: 480×640
 laser scans); `--identities outside-model` gives faces outside the morphable
@@ -19,6 +20,11 @@ scans, written as `.abs.gz` range scans, with this tree and with that release in
 enrolling (ICP's template), median ms and the speed-up. `--real DIR` adds `--real-frames` depth frames of a
 rap3df-2019-style folder (manifest.csv + intrinsics.json; `../shared/data/rap3df-2019` where it is present; the
 bench says so and goes on without them when it is not).
+
+`--preprocess-config FILE` judges a preprocessing setting: the accuracy figures above are those of the settings in
+FILE, and the same scans (and --real frames) are then preprocessed with those settings and with the defaults,
+alternately, in this process, one core, after a warm-up of both: median ms of each and the speed-up (the release
+comparison then times the defaults, which is what the release knows).
 """
 
 from __future__ import annotations
@@ -39,7 +45,8 @@ import numpy as np  # noqa: E402
 from facerec3d.datasets.synthetic import (  # noqa: E402
     EXPRESSIONS, SENSOR_PROFILES, FaceScanner, ScanSpec, identity_profile, sensor_profile)
 from facerec3d.geometry.transforms import rotation_angle  # noqa: E402
-from facerec3d.preprocess import Preprocessor, landmarks_in_input_frame, spike_mask  # noqa: E402
+from facerec3d.preprocess import (  # noqa: E402
+    PreprocessConfig, Preprocessor, landmarks_in_input_frame, spike_mask)
 from facerec3d.preprocess.sampling import measure_sampling  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -58,11 +65,14 @@ def main() -> None:
     ap.add_argument("--real", type=Path, default=Path(__file__).resolve().parents[2] / "shared/data/rap3df-2019",
                     help="a folder of real depth frames (manifest.csv, intrinsics.json) also timed against the release")
     ap.add_argument("--real-frames", type=int, default=40, help="frames of --real timed (evenly spread)")
+    ap.add_argument("--preprocess-config", type=Path, default=None,
+                    help="settings judged: accuracy with them, and their time against the defaults on the same scans")
     args = ap.parse_args()
+    config = PreprocessConfig.load(args.preprocess_config) if args.preprocess_config else PreprocessConfig()
     rng = np.random.default_rng(11)
     identity = identity_profile(args.identities)
     scanner = FaceScanner(sensor_profile(args.sensor), seed=3, identity=identity)
-    Preprocessor()(scanner.scan(ScanSpec(0)).scan)  # compile the Numba kernels first
+    Preprocessor(config)(scanner.scan(ScanSpec(0)).scan)  # compile the Numba kernels first
     nose, rot, times, fails, kept = [], [], [], 0, []
     shares: dict[str, float] = {}
     caught = injected = lost = good = 0
@@ -75,7 +85,7 @@ def main() -> None:
         m = spike_mask(truth.scan, sampling=measure_sampling(truth.scan))  # as the pipeline scales it
         caught, injected = caught + (m & truth.spike).sum(), injected + truth.spike.sum()
         lost, good = lost + (m & ~truth.spike).sum(), good + (~truth.spike).sum()
-        pre = Preprocessor()
+        pre = Preprocessor(config)
         t0 = time.perf_counter()
         try:
             face = pre(truth.scan)
@@ -97,8 +107,38 @@ def main() -> None:
     print(f"spikes removed: {caught / injected:.1%}; good points removed: {lost / good:.3%}")
     print(f"time per scan: median {np.median(times) * 1000:.0f} ms (one core)")
     print("stage shares: " + ", ".join(f"{k} {v / total:.0%}" for k, v in sorted(shares.items(), key=lambda kv: -kv[1])))
+    if args.preprocess_config:
+        against_defaults(args, kept, config)
     if args.against:
         against_release(args, kept)
+
+
+def against_defaults(args: argparse.Namespace, scans: list, config: PreprocessConfig) -> None:
+    """The bench's scans (and --real frames) preprocessed with `config` and with the defaults, alternately, in this
+    process after a warm-up of both: median ms and the speed-up."""
+    from facerec3d.io import load_scan
+
+    print(f"{args.preprocess_config} against the default settings (same scans, alternately, this process, one core):")
+    sets = [(f"synthetic {args.sensor} ({args.identities}), {len(scans)} scans", scans)]
+    if args.real_frames > 0 and (args.real / "manifest.csv").exists():
+        with open(args.real / "manifest.csv", newline="") as f:
+            rows = list(csv.DictReader(f))
+        step = max(1, len(rows) // args.real_frames)
+        frames = [load_scan(args.real / r["path"], args.real / "intrinsics.json") for r in rows[::step][: args.real_frames]]
+        sets.append((f"real frames of {args.real.name}, {len(frames)}", frames))
+    tried, default = Preprocessor(config), Preprocessor()
+    for label, items in sets:
+        ms = {id(tried): [], id(default): []}
+        for scan in items:
+            for pre in (tried, default):
+                t0 = time.perf_counter()
+                try:
+                    pre(scan)
+                except Exception:  # a failure to acquire is timed too: it is what the scan costs
+                    pass
+                ms[id(pre)].append(1000 * (time.perf_counter() - t0))
+        a, b = np.median(ms[id(tried)]), np.median(ms[id(default)])
+        print(f"  {label}: {a:.0f} ms per scan, defaults {b:.0f} ms: {b / a:.2f}× as fast (median)")
 
 
 def against_release(args: argparse.Namespace, scans: list) -> None:

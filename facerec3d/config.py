@@ -79,9 +79,10 @@ def read_settings(path: str | Path) -> Settings:
     return Settings(data, path)
 
 
-def from_dict(cls, data: dict[str, Any], source: str | Path | None = None, prefix: str = ""):
+def from_dict(cls, data: dict[str, Any], source: str | Path | None = None, prefix: str = "", base=None):
     """A config dataclass from a (partial, nested) dict, every value checked (module docstring). `source` is the
-    file named in errors (default: the file a `Settings` was read from); `prefix` the dotted section."""
+    file named in errors (default: the file a `Settings` was read from); `prefix` the dotted section; `base` the
+    instance whose other fields it keeps (else the class's defaults)."""
     source = source if source is not None else getattr(data, "source", None)
     if not isinstance(data, dict):
         raise SettingsError(source, prefix.rstrip(".") or None, f"must be a table of {cls.__name__} settings")
@@ -90,10 +91,11 @@ def from_dict(cls, data: dict[str, Any], source: str | Path | None = None, prefi
         raise SettingsError(source, prefix.rstrip(".") or None,
                             f"unknown {cls.__name__} settings: {', '.join(sorted(map(str, unknown)))}")
     hints = typing.get_type_hints(cls)
-    values = {name: _check(hints[name], value, source, prefix + name, _default(cls, name))
+    values = {name: _check(hints[name], value, source, prefix + name,
+                           _default(cls, name) if base is None else getattr(base, name))
               for name, value in data.items()}
     try:
-        return cls(**values)
+        return dataclasses.replace(base, **values) if base is not None else cls(**values)
     except SettingsError:
         raise
     except ValueError as e:  # the config's own checks (__post_init__)
@@ -121,12 +123,8 @@ def _check(hint, value, source, name: str, default=None):
             return None
         (hint,) = [a for a in args if a is not type(None)]
         return _check(hint, value, source, name)
-    if dataclasses.is_dataclass(hint):
-        parsed = from_dict(hint, value, source, name + ".")
-        if isinstance(default, hint):
-            return dataclasses.replace(default, **{f.name: getattr(parsed, f.name) for f in dataclasses.fields(hint)
-                                                   if f.name in value})
-        return parsed
+    if dataclasses.is_dataclass(hint):  # checked as a whole once merged into the default
+        return from_dict(hint, value, source, name + ".", default if isinstance(default, hint) else None)
     if hint is Any:
         return value
     if hint is bool:

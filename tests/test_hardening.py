@@ -365,6 +365,8 @@ def test_cache_entries_are_written_atomically(data, tmp_path, monkeypatch):
     ('gridify_mm = "0.7"\n', "gridify_mm: must be a number, not '0.7'"),
     ('[denoise]\nmethod = "blur"\n', "denoise: unknown denoising method 'blur'"),
     ('[detect.model]\nexpression_modes = 1\n', "detect.model.expression_modes: must be true or false, not 1"),
+    ('[detect.model]\nlookup_mm = 1.5\n', "detect.model: lookup_mm must be 0, or > 0 for a rigid fit"),
+    ('[detect.coarse]\nlookup_mm = 1.5\nidentity_modes = 10\n', "detect.coarse: lookup_mm must be 0, or > 0 for a rigid fit"),
     ('crop_radius_mm = nan\n', "crop_radius_mm: must be a finite number"),
     ('crop_radius_mm = 120\n', "crop_radius_mm 120 is wider than the resampling grid (resample.half_width_mm 95)"),
     ('[detect]\nring_mm = [20]\n', "detect.ring_mm: must be a list of 2"),
@@ -382,10 +384,10 @@ def test_preprocessing_settings_are_checked_field_by_field(tmp_path, text, where
 def test_a_partial_table_changes_only_what_it_names(tmp_path):
     # the coarse fit's defaults differ from ModelFitConfig's: a file setting only its points keeps it rigid
     path = tmp_path / "coarse.toml"
-    path.write_text("[detect.coarse]\nmax_points = 400\n[detect.model]\niterations = 7\n")
+    path.write_text("[detect.coarse]\nmax_points = 400\nlookup_mm = 2.0\n[detect.model]\niterations = 7\n")
     cfg = PreprocessConfig.load(path)
     default = PreprocessConfig().detect
-    assert cfg.detect.coarse == dataclasses.replace(default.coarse, max_points=400)
+    assert cfg.detect.coarse == dataclasses.replace(default.coarse, max_points=400, lookup_mm=2.0)
     assert cfg.detect.coarse.identity_modes == 0 and not cfg.detect.coarse.expression_modes
     assert cfg.detect.model == dataclasses.replace(default.model, iterations=7)
     assert cfg.detect.candidates == default.candidates
