@@ -102,8 +102,9 @@ class DetectConfig:
         identity_modes=0, expression_modes=False, iterations=15, start_distance_mm=20.0, end_distance_mm=5.0,
         max_points=800))  # rigid fit of the mean face, to verify each candidate (400 points: 1.25× faster, but the
     #                      rap3df-2019 held-out rank-1 fell 1–4 points, docs/benchmarks.md; `lookup_mm = 1.5`, pairs
-    #                      from a map of the mean face: ~6× faster fits, 1.6× faster preprocessing of a Kinect frame, no
-    #                      loss on the benchmarks, but knife-edge detections move: examples/preprocess-fast.toml)
+    #                      from an approximate map of the mean face: 2.4× faster fits than the default exact one, 1.2×
+    #                      faster preprocessing of a Kinect frame, no loss on the benchmarks, but knife-edge detections
+    #                      move: examples/preprocess-fast.toml)
     model: ModelFitConfig = field(default_factory=lambda: ModelFitConfig(max_points=1500))  # full fit of the finalists
     #   (1500 points, 3000 until 2026-12-03: a Kinect face gives ~1,100 near its nose, a 480 × 640 laser scan ~20,000,
     #   where 1500 make preprocessing 1.2× faster)
