@@ -365,8 +365,9 @@ def test_cache_entries_are_written_atomically(data, tmp_path, monkeypatch):
     ('gridify_mm = "0.7"\n', "gridify_mm: must be a number, not '0.7'"),
     ('[denoise]\nmethod = "blur"\n', "denoise: unknown denoising method 'blur'"),
     ('[detect.model]\nexpression_modes = 1\n', "detect.model.expression_modes: must be true or false, not 1"),
-    ('[detect.model]\nlookup_mm = 1.5\n', "detect.model: lookup_mm must be 0, or > 0 for a rigid fit"),
-    ('[detect.coarse]\nlookup_mm = 1.5\nidentity_modes = 10\n', "detect.coarse: lookup_mm must be 0, or > 0 for a rigid fit"),
+    ('[detect.model]\nlookup_mm = 1.5\n', "detect.model: lookup_mm must be 0, or >= 1 mm for a rigid fit"),
+    ('[detect.coarse]\nlookup_mm = 1.5\nidentity_modes = 10\n', "detect.coarse: lookup_mm must be 0, or >= 1 mm for a rigid fit"),
+    ('[detect.coarse]\nlookup_mm = 0.01\n', "detect.coarse: lookup_mm must be 0, or >= 1 mm for a rigid fit"),  # 10¹⁰ cells
     ('crop_radius_mm = nan\n', "crop_radius_mm: must be a finite number"),
     ('crop_radius_mm = 120\n', "crop_radius_mm 120 is wider than the resampling grid (resample.half_width_mm 95)"),
     ('[detect]\nring_mm = [20]\n', "detect.ring_mm: must be a list of 2"),

@@ -246,12 +246,15 @@ def test_the_mean_face_map_pairs_each_point_with_its_exact_nearest_vertex_and_th
     one (cKDTree's distance), none where no vertex is within the cut-off, and it leaves only points farther than its
     reach from every vertex to the grid search (-2), and only when the cut-off reaches past it. Rigid fits of 10
     posed faces started 9.8° off through it end exactly where the grid search's do (the same pairs, so the same
-    fits), nearer the true pose (measured: 0.8–7.6°)."""
+    fits), nearer the true pose (measured: 0.8–7.6°); so do fits set to start 200 mm out, farther than any map reaches
+    (which the grid search answers: a map's memory stays bounded whatever the settings)."""
+    from dataclasses import replace
+
     from scipy.spatial import cKDTree
 
     from facerec3d.geometry.transforms import rotation_from_euler
     from facerec3d.preprocess.detect import DetectConfig
-    from facerec3d.preprocess.pose import _MAP_MM, _NO_MAP, _basis, _face_map, _mapped, _rigid_fit
+    from facerec3d.preprocess.pose import _MAP_MM, _NO_MAP, _basis, _face_map, _mapped, _rigid_fit, fit_face_model
 
     coarse = DetectConfig().coarse
     reach = coarse.start_distance_mm
@@ -283,6 +286,13 @@ def test_the_mean_face_map_pairs_each_point_with_its_exact_nearest_vertex_and_th
                            fb.basis, m, *fb.grid.args()) for m in (face_map, _NO_MAP)]
         assert np.array_equal(fits[0][0], fits[1][0]) and np.array_equal(fits[0][1], fits[1][1])
         assert rotation_angle(fits[0][0] @ s.rotation) < 0.8 * rotation_angle(R0 @ s.rotation)  # and nearer the truth
+        if seed < 3:  # a fit set to start farther than any map reaches: the grid search beyond it, the same fit
+            far = replace(coarse, start_distance_mm=200.0)
+            wide = np.linspace(far.start_distance_mm, far.end_distance_mm, far.iterations)
+            a = fit_face_model(near, R0, t0, far)
+            R1, t1 = _rigid_fit(near, R0, t0, wide, 0.0, np.full(len(near), -1), fb.mean, fb.normals, fb.boundary,
+                                fb.basis, _NO_MAP, *fb.grid.args())
+            assert np.array_equal(a.R, R1) and np.array_equal(a.t, t1 - fb.mean[fb.landmarks["nose_tip"]])
 
 
 def test_the_rigid_fit_from_a_lookup_map_lands_where_the_exact_search_does():
@@ -309,7 +319,7 @@ def test_the_rigid_fit_from_a_lookup_map_lands_where_the_exact_search_does():
     rng = np.random.default_rng(1)
     P = mean[rng.integers(len(mean), size=5000)] + rng.uniform(-25, 25, (5000, 3))
     lookup = _face_map(0, False, coarse.radius_mm, h, reach, False)
-    j = np.array([_mapped(x, y, z, np.inf, mean, *lookup) for x, y, z in P])
+    j = np.array([_mapped(x, y, z, reach**2, mean, *lookup) for x, y, z in P])
     nearest, _ = cKDTree(mean).query(P)
     named = j >= 0
     assert named.mean() > 0.8 and np.all(j >= -1)

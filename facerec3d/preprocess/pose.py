@@ -66,9 +66,9 @@ class ModelFitConfig:
     #                        is still measured exactly
 
     def __post_init__(self) -> None:
-        if self.lookup_mm < 0 or (self.lookup_mm > 0 and (self.identity_modes or self.expression_modes)):
-            raise ValueError("lookup_mm must be 0, or > 0 for a rigid fit (identity_modes = 0, "
-                             "expression_modes = false)")
+        if self.lookup_mm != 0 and not (self.lookup_mm >= 1.0 and not (self.identity_modes or self.expression_modes)):
+            raise ValueError("lookup_mm must be 0, or >= 1 mm for a rigid fit (identity_modes = 0, "
+                             "expression_modes = false): a finer map would take gigabytes")
 
 
 @dataclass(frozen=True)
@@ -417,6 +417,9 @@ def _rigid_step(J, r, R, t):  # pragma: no cover - compiled
 # each h-mm cell names only the vertex nearest to its centre.
 _MAP_MM = 4.0  # exact map's cell: 2.2 million listed vertices (18 MB) for the coarse fit's 20 mm reach, built in
 #                ~0.2 s; 2 or 3 mm: 47 or 27 MB and no faster (memory reads, not distances, dominate a query)
+_MAP_REACH_MM = 25.0  # a map reaches at most this far from the mean face (a fit set to start farther gets the grid
+#                       search beyond it): memory stays bounded whatever the settings (the exact map's lists grow with
+#                       the square of the reach, the approximate one's cells with its cube)
 
 
 @lru_cache(maxsize=4)
@@ -486,10 +489,10 @@ def _candidate_lists(V, h, reach):  # pragma: no cover - compiled
 
 @njit(cache=True, inline="always")
 def _mapped(x0, x1, x2, cutoff2, V, mlo, mh, mdims, mstart, mitems, mreach2, mexact):  # pragma: no cover - compiled
-    """The vertex nearest to x nearer than the cut-off (-1: none) from a `_face_map`; -2 where it cannot tell (an
-    exact map's cell lists none and the cut-off reaches past the map's reach: the grid search answers)."""
+    """The vertex nearest to x nearer than the cut-off (-1: none) from a `_face_map`; -2 where it cannot tell (its
+    cell lists none and the cut-off reaches past the map's reach: the grid search answers)."""
     f0, f1, f2 = (x0 - mlo[0]) / mh, (x1 - mlo[1]) / mh, (x2 - mlo[2]) / mh
-    unknown = -2 if mexact and cutoff2 > mreach2 else -1
+    unknown = -2 if cutoff2 > mreach2 else -1
     if not (0.0 <= f0 < mdims[0] and 0.0 <= f1 < mdims[1] and 0.0 <= f2 < mdims[2]):
         return unknown  # farther than the reach from every vertex
     k = (int(f0) * mdims[1] + int(f1)) * mdims[2] + int(f2)
@@ -611,7 +614,7 @@ def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: Mod
     exact = _NO_MAP
     if not K:  # a rigid fit of the mean face: through its map, every iteration in one compiled call
         key = (config.identity_modes, config.expression_modes, config.radius_mm)
-        reach = max(config.start_distance_mm, config.end_distance_mm)
+        reach = min(max(config.start_distance_mm, config.end_distance_mm), _MAP_REACH_MM)
         exact = _face_map(*key, _MAP_MM, reach, True)
         pairs = _face_map(*key, config.lookup_mm, reach, False) if config.lookup_mm > 0 else exact
         R, t = _rigid_fit(points, R, t, np.array(cutoffs), robust_mm or 0.0, prev, V, normals, fb.boundary, fb.basis,
