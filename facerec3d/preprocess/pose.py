@@ -210,27 +210,40 @@ def _distance_field(V, h, reach):  # pragma: no cover - compiled
     for d in range(3):
         lo[d] = V[:, d].min() - reach
         dims[d] = int(np.floor((V[:, d].max() + reach - lo[d]) / h)) + 1
-    n1, n2 = dims[1], dims[2]
-    dist2 = np.full(dims[0] * n1 * n2, reach * reach)
-    near = np.full(dims[0] * n1 * n2, -1, np.int64)
+    dist2 = np.full(dims[0] * dims[1] * dims[2], reach * reach)
+    near = np.full(dims[0] * dims[1] * dims[2], -1, np.int64)
     for i in range(V.shape[0]):  # each vertex to the centres within reach
-        lo_i = np.empty(3, np.int64)
-        hi_i = np.empty(3, np.int64)
-        for d in range(3):
-            lo_i[d] = max(int(np.ceil((V[i, d] - reach - lo[d]) / h - 0.5)), 0)
-            hi_i[d] = min(int(np.floor((V[i, d] + reach - lo[d]) / h - 0.5)), dims[d] - 1)
-        for a in range(lo_i[0], hi_i[0] + 1):
-            e0 = lo[0] + (a + 0.5) * h - V[i, 0]
-            for b in range(lo_i[1], hi_i[1] + 1):
-                e1 = lo[1] + (b + 0.5) * h - V[i, 1]
-                for c in range(lo_i[2], hi_i[2] + 1):
-                    e2 = lo[2] + (c + 0.5) * h - V[i, 2]
-                    dd = e0 * e0 + e1 * e1 + e2 * e2
-                    k = (a * n1 + b) * n2 + c
-                    if dd < dist2[k]:
-                        dist2[k] = dd
-                        near[k] = i
+        cells, dd = _centres_around(V[i], reach, lo, h, dims)
+        for m in range(len(cells)):
+            if dd[m] < dist2[cells[m]]:
+                dist2[cells[m]] = dd[m]
+                near[cells[m]] = i
     return lo, dims, np.sqrt(dist2), near
+
+
+@njit(cache=True)
+def _centres_around(v, r, lo, h, dims):  # pragma: no cover - compiled
+    """The cells (flat index) of the grid (corner lo, cell size h, dims cells) whose centres lie in the cube of half
+    side r around v, and the squared distance of each centre from v."""
+    lo_i = np.empty(3, np.int64)
+    hi_i = np.empty(3, np.int64)
+    for d in range(3):
+        lo_i[d] = max(int(np.ceil((v[d] - r - lo[d]) / h - 0.5)), 0)
+        hi_i[d] = min(int(np.floor((v[d] + r - lo[d]) / h - 0.5)), dims[d] - 1)
+    n = max(hi_i[0] - lo_i[0] + 1, 0) * max(hi_i[1] - lo_i[1] + 1, 0) * max(hi_i[2] - lo_i[2] + 1, 0)
+    cells = np.empty(n, np.int64)
+    dist2 = np.empty(n)
+    m = 0
+    for a in range(lo_i[0], hi_i[0] + 1):
+        e0 = lo[0] + (a + 0.5) * h - v[0]
+        for b in range(lo_i[1], hi_i[1] + 1):
+            e1 = lo[1] + (b + 0.5) * h - v[1]
+            for c in range(lo_i[2], hi_i[2] + 1):
+                e2 = lo[2] + (c + 0.5) * h - v[2]
+                cells[m] = (a * dims[1] + b) * dims[2] + c
+                dist2[m] = e0 * e0 + e1 * e1 + e2 * e2
+                m += 1
+    return cells, dist2
 
 
 @njit(cache=True, inline="always")
@@ -446,8 +459,7 @@ def _candidate_lists(V, h, reach):  # pragma: no cover - compiled
     vertices within d* + a diagonal of its centre, by distance from it."""
     hd = h * np.sqrt(3.0) / 2
     lo, dims, dist, near = _distance_field(V, h, reach + hd)
-    n1, n2 = dims[1], dims[2]
-    cells = dims[0] * n1 * n2
+    cells = dims[0] * dims[1] * dims[2]
     radius = np.where(near >= 0, dist + 2 * hd + _SLACK_MM, -1.0)  # a vertex beyond it is never the nearest
     start = np.zeros(cells + 1, np.int64)
     far = radius.max()  # each vertex to the cells within the largest list's radius
@@ -460,26 +472,16 @@ def _candidate_lists(V, h, reach):  # pragma: no cover - compiled
             items = np.empty((start[-1], 2), np.float32)
             fill = start[:-1].copy()
         for i in range(V.shape[0]):
-            lo_i = np.empty(3, np.int64)
-            hi_i = np.empty(3, np.int64)
-            for d in range(3):
-                lo_i[d] = max(int(np.ceil((V[i, d] - far - lo[d]) / h - 0.5)), 0)
-                hi_i[d] = min(int(np.floor((V[i, d] + far - lo[d]) / h - 0.5)), dims[d] - 1)
-            for a in range(lo_i[0], hi_i[0] + 1):
-                e0 = lo[0] + (a + 0.5) * h - V[i, 0]
-                for b in range(lo_i[1], hi_i[1] + 1):
-                    e1 = lo[1] + (b + 0.5) * h - V[i, 1]
-                    for c in range(lo_i[2], hi_i[2] + 1):
-                        e2 = lo[2] + (c + 0.5) * h - V[i, 2]
-                        k = (a * n1 + b) * n2 + c
-                        dd = e0 * e0 + e1 * e1 + e2 * e2
-                        if radius[k] >= 0.0 and dd <= radius[k] * radius[k]:
-                            if count_only:
-                                start[k + 1] += 1
-                            else:
-                                items[fill[k], 0] = np.sqrt(dd)
-                                items[fill[k], 1] = i
-                                fill[k] += 1
+            cells_i, dd = _centres_around(V[i], far, lo, h, dims)
+            for m in range(len(cells_i)):
+                k = cells_i[m]
+                if radius[k] >= 0.0 and dd[m] <= radius[k] * radius[k]:
+                    if count_only:
+                        start[k + 1] += 1
+                    else:
+                        items[fill[k], 0] = np.sqrt(dd[m])
+                        items[fill[k], 1] = i
+                        fill[k] += 1
     for k in range(cells):
         s0, s1 = start[k], start[k + 1]
         if s1 - s0 > 1:
