@@ -66,17 +66,17 @@ def test_boundary_without_grid_finds_the_rim_of_a_disc(seed):
 def test_least_eigenvector_agrees_with_lapack():
     """The compiled 3 × 3 eigensolver behind the PCA normals gives LAPACK's least eigenvector (up to sign) on
     random covariances over twelve orders of magnitude, and a unit vector for degenerate ones."""
-    from facerec3d.geometry.normals import _least_eigenvector
+    from facerec3d.geometry.normals import least_eigenvector
 
     rng = np.random.default_rng(4)
     for _ in range(500):
         A = rng.normal(size=(3, 3))
         A = A @ A.T * 10.0 ** rng.uniform(-6, 6)
         w, V = np.linalg.eigh(A)
-        e = _least_eigenvector(A)
+        e = least_eigenvector(A)
         assert abs(abs(e @ V[:, 0]) - 1.0) < 1e-9
     for A in (np.zeros((3, 3)), np.eye(3), np.diag([3.0, 1.0, 2.0]), np.diag([2.0, 2.0, 0.5])):
-        e = _least_eigenvector(A)
+        e = least_eigenvector(A)
         assert np.linalg.norm(e) == pytest.approx(1.0)
         assert e @ A @ e == pytest.approx(np.linalg.eigvalsh(A)[0])
 
@@ -98,6 +98,29 @@ def test_within_ball_selects_exactly_the_points_numpy_selects(seed):
         assert got.dtype == bool and got.shape == expected.shape
         assert np.array_equal(got, expected), radius
     assert 0 < within_ball(points, centre, 55.0).sum() < len(points)
+
+
+def test_a_ball_index_lists_exactly_the_points_within_ball_selects():
+    """`BallIndex.within` (the detector's points near each placement, bucketed once per scan) gives the indices of
+    exactly the points `within_ball` selects, in order: on a 1 mm lattice, where many points lie on the sphere;
+    with points that are not finite or lie 10^15 mm out (whose cells are then coarse, so memory stays bounded);
+    for centres inside, beside and far from the cloud, and radii of 0, negative, huge, infinite and NaN."""
+    from facerec3d.geometry.ball import BallIndex, within_ball
+
+    rng = np.random.default_rng(5)
+    lattice = np.round(rng.normal(0, 40, (20000, 3)))
+    odd = lattice.copy()
+    odd[[3, 9, 27]] = [[np.nan, 0, 0], [np.inf, 1, 2], [1e15, -1e15, 0]]
+    for points in (lattice, odd):
+        index = BallIndex(points)
+        assert index.start[-1] == len(points) and index.dims.prod() <= 1024**2
+        centres = [p for p in rng.normal(0, 40, (30, 3))] + [np.zeros(3), np.array([500.0, 0, 0]),
+                                                             np.array([np.nan, 0, 0]), np.array([1e15, -1e15, 0])]
+        for centre in centres:
+            for radius in (0.0, -1.0, 7.0, 30.0, 56.0, 1e300, np.inf, np.nan):
+                expected = np.flatnonzero(within_ball(points, centre, radius))
+                assert np.array_equal(index.within(centre, radius), expected), (centre, radius)
+    assert 100 < len(BallIndex(lattice).within(np.zeros(3), 30.0)) < len(lattice)
 
 
 def test_nearest_index_is_numpys_argmin_of_the_distances_first_of_equals():

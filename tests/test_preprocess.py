@@ -240,6 +240,45 @@ def test_a_rougher_fit_is_ranked_down_by_its_relative_excess_whatever_the_sensor
     assert cfg.rms_weight * rms_excess(0.88, 0.65, cfg.rms_tolerance) > cfg.prominence_weight
 
 
+def test_protrusion_heights_are_those_of_each_windows_plane_as_numpy_finds_it():
+    """The detector's protrusion map (`detect._protrusion`, compiled, its least-variance direction found by Jacobi
+    rotations) gives what its definition computed with NumPy gives: for each pixel, the window pixels within reach
+    in 3D, their mean and covariance, LAPACK's least eigenvector turned towards the camera, the height above that
+    plane and above the mean depth; on a tilted surface with a bump, depth noise and missing pixels, rim included."""
+    from facerec3d.preprocess.detect import _protrusion
+
+    rng = np.random.default_rng(8)
+    r, c = np.mgrid[0:40, 0:36].astype(float)
+    x, y = (c - 18) * 3.0, (20 - r) * 3.0
+    z = -1000.0 + 0.3 * x - 0.2 * y + 25.0 * np.exp(-(x**2 + y**2) / 300.0) + rng.normal(0, 0.5, x.shape)
+    xyz = np.stack([x, y, z], axis=-1)
+    valid = rng.random(x.shape) > 0.15
+    valid[:, 30:] = False  # a rim: windows half full
+    xyz[~valid] = 0.0
+    half, reach2 = 4, 40.0**2
+    out_z, out_n, out_e = _protrusion(xyz, valid, half, reach2, 0.7, 0.35)
+    full = (2 * half + 1) ** 2
+    checked = 0
+    for i in range(half, 40 - half):
+        for j in range(half, 36 - half):
+            if not valid[i, j]:
+                continue
+            win = xyz[i - half:i + half + 1, j - half:j + half + 1][valid[i - half:i + half + 1, j - half:j + half + 1]]
+            d = win - xyz[i, j]
+            d = d[(d**2).sum(axis=1) <= reach2]
+            if len(d) < 0.35 * full:
+                assert out_e[i, j] == -np.inf
+                continue
+            m = d.mean(axis=0)
+            n = np.linalg.eigh(np.cov(d.T, bias=True))[1][:, 0]
+            n = -n if n @ xyz[i, j] > 0 else n
+            assert out_e[i, j] == pytest.approx(-(m @ n), abs=1e-9)
+            if len(d) >= 0.7 * full:
+                assert out_n[i, j] == pytest.approx(-(m @ n), abs=1e-9) and out_z[i, j] == pytest.approx(-m[2])
+            checked += 1
+    assert checked > 500 and np.nanmax(np.where(np.isfinite(out_n), out_n, np.nan)) > 5.0  # the bump stands out
+
+
 def test_the_mean_face_map_pairs_each_point_with_its_exact_nearest_vertex_and_the_rigid_fit_with_it():
     """The rigid fits of the mean face (the detector's coarse fits) pair each scan point through a map of the mean
     face (`_face_map`, exact): for 40,000 points around the face, far from it and near the map's reach, the vertex it names is the nearest
@@ -293,6 +332,33 @@ def test_the_mean_face_map_pairs_each_point_with_its_exact_nearest_vertex_and_th
             R1, t1 = _rigid_fit(near, R0, t0, wide, 0.0, np.full(len(near), -1), fb.mean, fb.normals, fb.boundary,
                                 fb.basis, _NO_MAP, *fb.grid.args())
             assert np.array_equal(a.R, R1) and np.array_equal(a.t, t1 - fb.mean[fb.landmarks["nose_tip"]])
+
+
+def test_the_full_fit_pairs_each_point_with_the_exact_nearest_vertex_of_the_reshaped_face():
+    """The full fits reshape the face at every iteration and search its vertices through a grid built for that
+    shape (`_shaped_grid`), pruned by the mean face's distance field loosened by how far the shape moved (`shift`):
+    for faces 1 to 3 prior standard deviations from the mean, and points on, near and far from them, each pair is
+    the exact nearest vertex (cKDTree's distance) within the cut-off, from any first candidate."""
+    from scipy.spatial import cKDTree
+
+    from facerec3d.preprocess.pose import ModelFitConfig, _fit_basis, _NO_MAP, _query, _shaped, _shaped_grid
+
+    fb = _fit_basis(ModelFitConfig())
+    rng = np.random.default_rng(6)
+    for spread in (1.0, 2.0, 3.0):
+        V = _shaped(fb, rng.normal(0, spread, fb.basis.shape[2]))
+        grid = _shaped_grid(fb, V)
+        moved = np.linalg.norm(V - fb.mean, axis=1).max()
+        assert moved > 2.0 and grid.shift >= moved - 1e-9
+        P = V[rng.integers(len(V), size=6000)] + rng.normal(0, 1, (6000, 3)) * rng.choice([0.3, 2.0, 8.0, 30.0],
+                                                                                         size=(6000, 1))
+        nearest, _ = cKDTree(V).query(P)
+        for cutoff in (3.0, 10.0, np.inf):
+            for prev in (np.full(len(P), -1), rng.integers(len(V), size=len(P))):
+                j = _query(P, cutoff, prev, V, _NO_MAP, *grid.args())
+                found = j >= 0
+                assert np.allclose(np.linalg.norm(P[found] - V[j[found]], axis=1), nearest[found], rtol=0, atol=1e-9)
+                assert np.all(nearest[~found] >= cutoff - 1e-9) and found.mean() > 0.3
 
 
 def test_the_rigid_fit_from_a_lookup_map_lands_where_the_exact_search_does():

@@ -52,7 +52,7 @@ def _local_pca(points: np.ndarray, nb: np.ndarray,
 @njit(cache=True)
 def _local_pca_kernel(points, nb, centres):  # pragma: no cover - compiled
     """`_local_pca` compiled: each neighbourhood's offsets from its centre summed in one pass, the covariance
-    E[d dᵀ] − E[d] E[d]ᵀ, and the eigenvector of its least eigenvalue (`_least_eigenvector`)."""
+    E[d dᵀ] − E[d] E[d]ᵀ, and the eigenvector of its least eigenvalue (`least_eigenvector`)."""
     m, k = nb.shape
     count = np.zeros(m, np.int64)
     mean = np.zeros((m, 3))
@@ -88,13 +88,13 @@ def _local_pca_kernel(points, nb, centres):  # pragma: no cover - compiled
             for b in range(a, 3):
                 cov[a, b] = ss[a, b] / w - mean[i, a] * mean[i, b]
                 cov[b, a] = cov[a, b]
-        normal[i] = _least_eigenvector(cov)
+        normal[i] = least_eigenvector(cov)
         radius[i] = np.sqrt(far)
     return count, mean, normal, radius
 
 
 @njit(cache=True)
-def _least_eigenvector(c):  # pragma: no cover - compiled
+def least_eigenvector(c):  # pragma: no cover - compiled
     """The unit eigenvector of the least eigenvalue of a symmetric 3 × 3 matrix: cyclic Jacobi rotations until
     the off-diagonal vanishes (to rounding; a few sweeps), as in Numerical Recipes §11.1; (1, 0, 0) for zero."""
     a = c.copy()

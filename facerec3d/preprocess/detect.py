@@ -34,7 +34,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from facerec3d.errors import FailureToAcquire, short_of
-from facerec3d.geometry.ball import nearest_index, within_ball
+from facerec3d.geometry.ball import BallIndex, nearest_index, within_ball
+from facerec3d.geometry.normals import least_eigenvector
 from facerec3d.geometry.transforms import rotation_from_euler
 from facerec3d.preprocess.pose import ModelFit, ModelFitConfig, fit_face_model, hotelling_rotation
 from facerec3d.scan import FaceScan
@@ -150,6 +151,7 @@ def _protrusion(xyz, valid, half, reach2, min_coverage, edge_coverage):  # pragm
     out_n = np.full((rows, cols), -np.inf)
     out_e = np.full((rows, cols), -np.inf)
     full = (2 * half + 1) ** 2
+    cov = np.empty((3, 3))
     for r in range(half, rows - half):
         for c in range(half, cols - half):
             if not valid[r, c]:
@@ -178,11 +180,10 @@ def _protrusion(xyz, valid, half, reach2, min_coverage, edge_coverage):  # pragm
             if count < edge_coverage * full:
                 continue
             mx, my, mz = sx / count, sy / count, sz / count
-            cov = np.array([[sxx / count - mx * mx, sxy / count - mx * my, sxz / count - mx * mz],
-                            [sxy / count - mx * my, syy / count - my * my, syz / count - my * mz],
-                            [sxz / count - mx * mz, syz / count - my * mz, szz / count - mz * mz]])
-            _, vecs = np.linalg.eigh(cov)
-            n = vecs[:, 0]
+            cov[0, 0], cov[0, 1], cov[0, 2] = sxx / count - mx * mx, sxy / count - mx * my, sxz / count - mx * mz
+            cov[1, 1], cov[1, 2], cov[2, 2] = syy / count - my * my, syz / count - my * mz, szz / count - mz * mz
+            cov[1, 0], cov[2, 0], cov[2, 1] = cov[0, 1], cov[0, 2], cov[1, 2]
+            n = least_eigenvector(cov)  # (Jacobi: ~3x faster here than LAPACK's eigh through Numba)
             if n[0] * x0 + n[1] * y0 + n[2] * z0 > 0:  # towards the camera
                 n = -n
             height = -(mx * n[0] + my * n[1] + mz * n[2])
@@ -472,6 +473,7 @@ class Neighbours:
 
         self.scan = scan
         self.tree = cKDTree(scan.points[:, :2])
+        self.balls = BallIndex(scan.points)
         self.reach = config.seen_radius_px * scan.resolution()
         self.outline = config.seen_outline_px * scan.resolution()
 
@@ -480,7 +482,7 @@ class Neighbours:
         `exact`, else those and the few within 1 mm more (for tests that cut at `radius_mm` in their own frame,
         whose rounding may differ)."""
         nose = fit.landmarks["nose_tip"]
-        return self.scan.points[within_ball(self.scan.points, nose, radius_mm if exact else radius_mm + 1.0)]
+        return self.scan.points[self.balls.within(nose, radius_mm if exact else radius_mm + 1.0)]
 
 
 def shows_nose(around: Neighbours, fit: ModelFit, config: DetectConfig = DetectConfig()) -> bool:

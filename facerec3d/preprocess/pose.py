@@ -423,8 +423,8 @@ def _rigid_step(J, r, R, t):  # pragma: no cover - compiled
 # registration of 2D and 3D point sets", IVC 2003). Exact (the default): each cell of `_MAP_MM` lists every vertex
 # that can be the nearest to some point of the cell (those within d* + the cell's diagonal of its centre, d* the
 # centre's nearest-vertex distance), sorted by distance from the centre, so a query reads them in order until no
-# later one can be nearer (its distance from the centre less half the diagonal bounds its distance from the point
-# below): the nearest vertex the grid search finds, at ~55 % of its cost (the same pairs and fits, checked by
+# later one can be nearer (its distance from the centre less the point's own distance from the centre, at most half
+# the diagonal, bounds its distance from the point below): the nearest vertex the grid search finds, at ~55 % of its cost (the same pairs and fits, checked by
 # tests/test_preprocess.py; the same detections on 221 frames and scans). Cells farther than the fits' largest cut-off from every vertex list none (no pair);
 # the exact search takes over for a cut-off beyond it (the inlier share's). Approximate (`lookup_mm` = h > 0):
 # each h-mm cell names only the vertex nearest to its centre.
@@ -497,14 +497,17 @@ def _mapped(x0, x1, x2, cutoff2, V, mlo, mh, mdims, mstart, mitems, mreach2, mex
     unknown = -2 if cutoff2 > mreach2 else -1
     if not (0.0 <= f0 < mdims[0] and 0.0 <= f1 < mdims[1] and 0.0 <= f2 < mdims[2]):
         return unknown  # farther than the reach from every vertex
-    k = (int(f0) * mdims[1] + int(f1)) * mdims[2] + int(f2)
+    i0, i1, i2 = int(f0), int(f1), int(f2)
+    k = (i0 * mdims[1] + i1) * mdims[2] + i2
     s0, s1 = (mstart[k], mstart[k + 1]) if mexact else (k, k + int(mitems[k, 1] >= 0))  # approximate: one per cell
     if s0 == s1:
         return unknown
     best2, bj = cutoff2, -1
-    hd = mh * 0.8660254037844386 + 1e-4  # half the cell's diagonal, loosened past float32 rounding of the list
+    e0, e1, e2 = (f0 - i0 - 0.5) * mh, (f1 - i1 - 0.5) * mh, (f2 - i2 - 0.5) * mh
+    off = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2) + 1e-4  # x from its cell's centre (at most half the diagonal),
+    #                                                     loosened past rounding (of the list's float32 too)
     for s in range(s0, s1):
-        low = mitems[s, 0] - hd  # no vertex listed from here on is nearer to x than this
+        low = mitems[s, 0] - off  # no vertex listed from here on is nearer to x than this
         if low > 0.0 and low * low >= best2:
             break
         j = int(mitems[s, 1])
@@ -564,8 +567,22 @@ def _shaped(fb: _FitBasis, c: np.ndarray) -> np.ndarray:
 def _shaped_grid(fb: _FitBasis, V: np.ndarray) -> _Grid:
     """The nearest-vertex search structure of shaped vertices V (the mean face's distance field, loosened by how
     far V moved from the mean)."""
-    shape = V - fb.mean
-    return _Grid.build(V, fb.grid.field, float(np.sqrt(np.max(np.einsum("ij,ij->i", shape, shape)))))
+    lo, dims, start, order, pts, shift = _shaped_build(V, fb.mean, _GRID_MM)
+    return _Grid(lo, dims, start, order, pts, fb.grid.field, shift)
+
+
+@njit(cache=True)
+def _shaped_build(V, mean, h):  # pragma: no cover - compiled
+    """`_Grid.build` of V in one call, with the shift: how far a vertex of V lies from its mean position at most."""
+    lo, dims, start, order = _grid_build(V, h)
+    pts = np.empty((V.shape[0], 3))
+    shift2 = 0.0
+    for s in range(V.shape[0]):
+        for d in range(3):
+            pts[s, d] = V[order[s], d]
+        e0, e1, e2 = V[s, 0] - mean[s, 0], V[s, 1] - mean[s, 1], V[s, 2] - mean[s, 2]
+        shift2 = max(shift2, e0 * e0 + e1 * e1 + e2 * e2)
+    return lo, dims, start, order, pts, np.sqrt(shift2)
 
 
 def model_nose_tip(coefficients: np.ndarray, config: ModelFitConfig = ModelFitConfig()) -> np.ndarray:
@@ -574,7 +591,7 @@ def model_nose_tip(coefficients: np.ndarray, config: ModelFitConfig = ModelFitCo
     fb = _fit_basis(config)
     K = fb.basis.shape[2]
     c = np.asarray(coefficients, dtype=np.float64)[:K]
-    return _shaped(fb, np.pad(c, (0, K - len(c))))[fb.landmarks["nose_tip"]]
+    return _shaped(fb, np.concatenate([c, np.zeros(K - len(c))]))[fb.landmarks["nose_tip"]]
 
 
 def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: ModelFitConfig = ModelFitConfig(),
@@ -599,8 +616,10 @@ def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: Mod
     robust_mm = (config.robust_mm if robust_mm is None else robust_mm) or None
     points = np.ascontiguousarray(points[:: max(1, len(points) // config.max_points)], dtype=np.float64)
     K = fb.basis.shape[2]
-    c = np.zeros(K) if start is None else np.array(start, dtype=np.float64)[:K]
-    c = np.pad(c, (0, K - len(c)))
+    c = np.zeros(K)
+    if start is not None:  # those given, zeros after them
+        given = np.asarray(start, dtype=np.float64)[:K]
+        c[: len(given)] = given
     R, t = np.asarray(R, float), np.asarray(t, float)
     n = config.iterations
     V, normals, grid = fb.mean, fb.normals, fb.grid
@@ -608,9 +627,6 @@ def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: Mod
         V = _shaped(fb, c)
         normals, grid = _normals(V, fb.triangles), _shaped_grid(fb, V)
     prev = np.full(len(points), -1, dtype=np.int64)  # each point's last partner, where the search starts
-    reg = np.zeros(6 + K)
-    reg[6:] = config.regularisation
-    prior = np.diag(reg)
     cutoffs = [config.start_distance_mm + (config.end_distance_mm - config.start_distance_mm) * i / max(n - 1, 1)
                for i in range(n)]  # the shrinking cut-off of each iteration
     exact = _NO_MAP
@@ -621,6 +637,10 @@ def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: Mod
         pairs = _face_map(*key, config.lookup_mm, reach, False) if config.lookup_mm > 0 else exact
         R, t = _rigid_fit(points, R, t, np.array(cutoffs), robust_mm or 0.0, prev, V, normals, fb.boundary, fb.basis,
                           pairs, *grid.args())
+    else:  # the prior's weights: none on the pose, λ on each coefficient
+        reg = np.zeros(6 + K)
+        reg[6:] = config.regularisation
+        prior = np.diag(reg)
     for cutoff in cutoffs if K else []:
         J, r = _linearise(points, R, t, cutoff, prev, V, normals, fb.boundary, fb.basis, _NO_MAP, *grid.args())
         if len(r) < 50:
