@@ -96,7 +96,9 @@ def _local_pca_kernel(points, nb, centres):  # pragma: no cover - compiled
 @njit(cache=True)
 def least_eigenvector(c):  # pragma: no cover - compiled
     """The unit eigenvector of the least eigenvalue of a symmetric 3 × 3 matrix: cyclic Jacobi rotations until
-    the off-diagonal vanishes (to rounding; a few sweeps), as in Numerical Recipes §11.1; (1, 0, 0) for zero."""
+    the off-diagonal vanishes (to rounding; a few sweeps), as in Numerical Recipes §11.1; (1, 0, 0) for zero.
+    Also compiled into `preprocess.detect._protrusion`, whose Numba cache does not see a change made here: after
+    editing this, delete that module's `__pycache__/*.nb*` files (a fresh clone and CI compile afresh)."""
     a = c.copy()
     v = np.eye(3)
     for _ in range(30):
