@@ -57,7 +57,7 @@ class BallIndex:
 
     def __init__(self, points: np.ndarray):
         self.points = np.ascontiguousarray(points, dtype=np.float64)
-        self.lo, self.h, self.dims, self.start, self.order = _bucket_xy(self.points, self.CELL_MM, 1024)
+        self.lo, self.h, self.dims, self.start, self.order = bucket(self.points, 2, self.CELL_MM, 1024)
 
     def within(self, centre: np.ndarray, radius: float) -> np.ndarray:
         """Indices (ascending) of the points within `radius` of `centre`."""
@@ -67,34 +67,43 @@ class BallIndex:
 
 
 @njit(cache=True)
-def _bucket_xy(points, h, most):  # pragma: no cover - compiled
-    """Counting sort of the points by their (x, y) cell, of size h or larger so that at most `most` cells lie
-    along an axis: (corner, cell size, cells along x and y, start of each cell's run in `order`, the point indices
-    cell by cell). Points whose x or y is not finite go to cell (0, 0): no finite ball holds them."""
+def bucket(points, axes, h, most):  # pragma: no cover - compiled
+    """Counting sort of points by their cell over their first `axes` coordinates: cells of size h, or larger so
+    that at most `most` lie along an axis (memory stays bounded whatever the coordinates); (corner, cell size,
+    cells along each axis, start of each cell's run in `order` (cells numbered axis by axis, the last fastest),
+    the point indices cell by cell). A point with a coordinate that is not finite goes to cell 0: no finite
+    ball holds it. The detector's ball index (x, y) and the model fit's nearest-vertex grid (x, y, z) use it."""
     n = points.shape[0]
-    lo = np.full(2, np.inf)
-    hi = np.full(2, -np.inf)
+    lo = np.full(axes, np.inf)
+    hi = np.full(axes, -np.inf)
+    finite = np.ones(n, np.bool_)
     for i in range(n):
-        if abs(points[i, 0]) < np.inf and abs(points[i, 1]) < np.inf:
-            for d in range(2):
+        for d in range(axes):
+            if not abs(points[i, d]) < np.inf:
+                finite[i] = False
+        if finite[i]:
+            for d in range(axes):
                 lo[d] = min(lo[d], points[i, d])
                 hi[d] = max(hi[d], points[i, d])
-    for d in range(2):
+    for d in range(axes):
         if lo[d] > hi[d]:
             lo[d] = hi[d] = 0.0
         h = max(h, (hi[d] - lo[d]) / (most - 1))
-    dims = np.empty(2, np.int64)
-    for d in range(2):
+    dims = np.empty(axes, np.int64)
+    cells = 1
+    for d in range(axes):
         dims[d] = min(int(np.floor((hi[d] - lo[d]) / h)) + 1, most)
+        cells *= dims[d]
     cell = np.zeros(n, np.int64)
-    start = np.zeros(dims[0] * dims[1] + 1, np.int64)
+    start = np.zeros(cells + 1, np.int64)
     for i in range(n):
-        if abs(points[i, 0]) < np.inf and abs(points[i, 1]) < np.inf:
-            a = min(max(int(np.floor((points[i, 0] - lo[0]) / h)), 0), dims[0] - 1)
-            b = min(max(int(np.floor((points[i, 1] - lo[1]) / h)), 0), dims[1] - 1)
-            cell[i] = a * dims[1] + b
+        if finite[i]:
+            idx = 0
+            for d in range(axes):
+                idx = idx * dims[d] + min(max(int(np.floor((points[i, d] - lo[d]) / h)), 0), dims[d] - 1)
+            cell[i] = idx
         start[cell[i] + 1] += 1
-    for k in range(len(start) - 1):
+    for k in range(cells):
         start[k + 1] += start[k]
     fill = start[:-1].copy()
     order = np.empty(n, np.int64)

@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit
 
 from facerec3d.facemodel import FIDUCIAL_LANDMARK68, load_model
+from facerec3d.geometry.ball import bucket
 
 
 def rotation_to_z(normal: np.ndarray) -> np.ndarray:
@@ -130,6 +131,7 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 # surface from below (less `shift`, how far the fitted vertices may have moved from the mean), which drops the
 # far points of the coarse fits at once. The mean face's grid and field are built once (`_basis`).
 _GRID_MM = 8.0  # search cell size
+_GRID_MOST = 4096  # cells along an axis at most (larger cells beyond: a face far off stays a small grid)
 _FIELD_MM = 3.0  # distance-field cell size ...
 _FIELD_REACH_MM = 25.0  # ... over the mean face and this far around it (past the coarse fit's first cut-off)
 _SLACK_MM = 1e-6  # the search's bounds are loosened by this much, far above rounding of coordinates in mm
@@ -159,6 +161,7 @@ class _Grid:
     with the distance field of the mean face, whose vertices lie at most `shift` mm from these."""
 
     lo: np.ndarray  # (3,) corner of cell (0, 0, 0)
+    h: float  # cell size (mm): `_GRID_MM`, larger for a grid that would span more than `_GRID_MOST` cells
     dims: np.ndarray  # (3,) cells along x, y, z
     start: np.ndarray  # (cells + 1,)
     order: np.ndarray  # (n,) vertex indices, cell by cell
@@ -167,40 +170,31 @@ class _Grid:
     shift: float
 
     @staticmethod
-    def build(V: np.ndarray, field: _DistanceField = _NO_FIELD, shift: float = 0.0) -> _Grid:
-        lo, dims, start, order = _grid_build(V, _GRID_MM)
-        return _Grid(lo, dims, start, order, V[order], field, shift)
+    def build(V: np.ndarray, field: _DistanceField = _NO_FIELD, shift: float | None = None,
+              mean: np.ndarray | None = None) -> _Grid:
+        """The grid of vertices V; `shift`: how far they lie from the mean face's at most, given or measured
+        from `mean` (their mean positions), else 0."""
+        lo, h, dims, start, order = bucket(V, 3, _GRID_MM, _GRID_MOST)
+        pts, moved = _ordered(V, order, V if mean is None else mean)
+        return _Grid(lo, float(h), dims, start, order, pts, field, moved if shift is None else shift)
 
     def args(self) -> tuple:
         f = self.field
-        return (self.lo, _GRID_MM, self.dims, self.start, self.order, self.pts,
+        return (self.lo, self.h, self.dims, self.start, self.order, self.pts,
                 f.lo, _FIELD_MM, f.dims, f.dist, f.near, self.shift)
 
 
 @njit(cache=True)
-def _grid_build(V, h):  # pragma: no cover - compiled
-    n = V.shape[0]
-    lo = np.empty(3)
-    dims = np.empty(3, np.int64)
-    for d in range(3):
-        lo[d] = V[:, d].min()
-        dims[d] = int(np.floor((V[:, d].max() - lo[d]) / h)) + 1
-    cell = np.empty(n, np.int64)
-    start = np.zeros(dims[0] * dims[1] * dims[2] + 1, np.int64)
-    for i in range(n):
-        idx = 0
+def _ordered(V, order, mean):  # pragma: no cover - compiled
+    """(V's rows in `order`, the largest distance of a row of V from the same row of `mean`)."""
+    pts = np.empty((V.shape[0], 3))
+    shift2 = 0.0
+    for s in range(V.shape[0]):
         for d in range(3):
-            idx = idx * dims[d] + min(max(int(np.floor((V[i, d] - lo[d]) / h)), 0), dims[d] - 1)
-        cell[i] = idx
-        start[idx + 1] += 1
-    for c in range(len(start) - 1):
-        start[c + 1] += start[c]
-    fill = start[:-1].copy()
-    order = np.empty(n, np.int64)
-    for i in range(n):
-        order[fill[cell[i]]] = i
-        fill[cell[i]] += 1
-    return lo, dims, start, order
+            pts[s, d] = V[order[s], d]
+        e0, e1, e2 = V[s, 0] - mean[s, 0], V[s, 1] - mean[s, 1], V[s, 2] - mean[s, 2]
+        shift2 = max(shift2, e0 * e0 + e1 * e1 + e2 * e2)
+    return pts, np.sqrt(shift2)
 
 
 @njit(cache=True)
@@ -424,9 +418,10 @@ def _rigid_step(J, r, R, t):  # pragma: no cover - compiled
 # that can be the nearest to some point of the cell (those within d* + the cell's diagonal of its centre, d* the
 # centre's nearest-vertex distance), sorted by distance from the centre, so a query reads them in order until no
 # later one can be nearer (its distance from the centre less the point's own distance from the centre, at most half
-# the diagonal, bounds its distance from the point below): the nearest vertex the grid search finds, at ~55 % of its cost (the same pairs and fits, checked by
-# tests/test_preprocess.py; the same detections on 221 frames and scans). Cells farther than the fits' largest cut-off from every vertex list none (no pair);
-# the exact search takes over for a cut-off beyond it (the inlier share's). Approximate (`lookup_mm` = h > 0):
+# the diagonal, bounds its distance from the point below): the nearest vertex the grid search finds, at ~45 % of
+# its cost (the same pairs and fits, checked by tests/test_preprocess.py; the same faces on 568 frames and scans).
+# Cells farther than the fits' largest cut-off from every vertex list none (no pair); the exact search takes over
+# for a cut-off beyond it (the inlier share's). Approximate (`lookup_mm` = h > 0):
 # each h-mm cell names only the vertex nearest to its centre.
 _MAP_MM = 4.0  # exact map's cell: 2.2 million listed vertices (18 MB) for the coarse fit's 20 mm reach, built in
 #                ~0.2 s; 2 or 3 mm: 47 or 27 MB and no faster (memory reads, not distances, dominate a query)
@@ -567,22 +562,7 @@ def _shaped(fb: _FitBasis, c: np.ndarray) -> np.ndarray:
 def _shaped_grid(fb: _FitBasis, V: np.ndarray) -> _Grid:
     """The nearest-vertex search structure of shaped vertices V (the mean face's distance field, loosened by how
     far V moved from the mean)."""
-    lo, dims, start, order, pts, shift = _shaped_build(V, fb.mean, _GRID_MM)
-    return _Grid(lo, dims, start, order, pts, fb.grid.field, shift)
-
-
-@njit(cache=True)
-def _shaped_build(V, mean, h):  # pragma: no cover - compiled
-    """`_Grid.build` of V in one call, with the shift: how far a vertex of V lies from its mean position at most."""
-    lo, dims, start, order = _grid_build(V, h)
-    pts = np.empty((V.shape[0], 3))
-    shift2 = 0.0
-    for s in range(V.shape[0]):
-        for d in range(3):
-            pts[s, d] = V[order[s], d]
-        e0, e1, e2 = V[s, 0] - mean[s, 0], V[s, 1] - mean[s, 1], V[s, 2] - mean[s, 2]
-        shift2 = max(shift2, e0 * e0 + e1 * e1 + e2 * e2)
-    return lo, dims, start, order, pts, np.sqrt(shift2)
+    return _Grid.build(V, fb.grid.field, mean=fb.mean)
 
 
 def model_nose_tip(coefficients: np.ndarray, config: ModelFitConfig = ModelFitConfig()) -> np.ndarray:
