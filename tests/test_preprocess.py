@@ -193,7 +193,7 @@ def test_the_upright_head_prior_counts_a_rolled_face():
 def test_the_finalists_are_those_of_the_full_ranking_though_the_nose_test_stops_early(seed):
     """`detect.best_distinct` gives the same first placement and finalists as sorting every placement with those
     showing a nose first and keeping the first distinct ones (the detector's ranking until December 2026), while
-    testing the nose of fewer placements when enough distinct ones pass early."""
+    testing the nose of fewer placements: none after enough distinct ones pass, none near one that passed."""
     from types import SimpleNamespace
 
     from facerec3d.preprocess.detect import best_distinct
@@ -216,6 +216,9 @@ def test_the_finalists_are_those_of_the_full_ranking_though_the_nose_test_stops_
         assert [id(f) for f in finalists] == [id(f) for f in expected[:count]]
         if count <= 3:
             assert len(tested) < len(placements)
+        for k, f in enumerate(tested):  # none tested near a placement that passed before it: it cannot count
+            assert all(np.linalg.norm(f.landmarks["nose_tip"] - g.landmarks["nose_tip"]) > 25.0
+                       for g in tested[:k] if g.nose)
     assert best_distinct([], lambda f: True, 25.0, 8) == (None, [])
 
 

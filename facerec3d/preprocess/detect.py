@@ -317,21 +317,23 @@ def best_distinct(ranked: list[ModelFit], passes, separation_mm: float,
                   count: int) -> tuple[ModelFit | None, list[ModelFit]]:
     """(the first placement, the first `count` distinct ones) of `ranked` reordered with those that `passes` first
     (a stable partition), distinct meaning a nose tip more than `separation_mm` from every earlier one's. The test is
-    made only as far down the ranking as needed: once `count` distinct placements pass, no later one can come
-    before them."""
+    made only as far down the ranking as needed (once `count` distinct placements pass, no later one can come
+    before them) and only on placements that can still be distinct: one near a placement that passed already can
+    be neither a finalist (passing or not) nor the first (which passed before it)."""
     passing, failing = [], []
     distinct: list[ModelFit] = []
     new = lambda f: all(np.linalg.norm(f.landmarks["nose_tip"] - g.landmarks["nose_tip"]) > separation_mm
                         for g in distinct)
     for f in ranked:
+        if not new(f):  # near a finalist that passed: skipped untested (a third of the placements of a Kinect frame)
+            continue
         if not passes(f):
             failing.append(f)
             continue
         passing.append(f)
-        if new(f):
-            distinct.append(f)
-            if len(distinct) == count:
-                return passing[0], distinct
+        distinct.append(f)
+        if len(distinct) == count:
+            return passing[0], distinct
     for f in failing:
         if len(distinct) == count:
             break
