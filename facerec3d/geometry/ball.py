@@ -47,7 +47,6 @@ def nearest_index(points: np.ndarray, centre: np.ndarray) -> int:
     return int(_nearest(np.ascontiguousarray(points, dtype=np.float64), float(c[0]), float(c[1]), float(c[2])))
 
 
-
 class BallIndex:
     """The points bucketed by (x, y) once, for many `within` queries: the points of a dense scan within a ball
     around each of the detector's placements (a 480 × 640 scan's 64,000 points, ~65 queries) without testing
