@@ -170,13 +170,11 @@ class _Grid:
     shift: float
 
     @staticmethod
-    def build(V: np.ndarray, field: _DistanceField = _NO_FIELD, shift: float | None = None,
-              mean: np.ndarray | None = None) -> _Grid:
-        """The grid of vertices V; `shift`: how far they lie from the mean face's at most, given or measured
-        from `mean` (their mean positions), else 0."""
+    def build(V: np.ndarray, field: _DistanceField = _NO_FIELD, mean: np.ndarray | None = None) -> _Grid:
+        """The grid of vertices V, its `shift` measured from `mean` (their mean positions; None: V is the mean)."""
         lo, h, dims, start, order = bucket(V, 3, _GRID_MM, _GRID_MOST)
-        pts, moved = _ordered(V, order, V if mean is None else mean)
-        return _Grid(lo, float(h), dims, start, order, pts, field, moved if shift is None else shift)
+        pts, shift = _ordered(V, order, V if mean is None else mean)
+        return _Grid(lo, float(h), dims, start, order, pts, field, shift)
 
     def args(self) -> tuple:
         f = self.field
