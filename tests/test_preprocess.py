@@ -106,6 +106,42 @@ def test_faceless_scans_are_failures_to_acquire(kind):
         Preprocessor()(faceless_scans()[kind])
 
 
+def test_a_frame_of_random_depths_is_no_surface_while_every_sensor_profile_is():
+    """Random depths spread over 50–700 mm at a 2 mm pitch (a broken sensor, a corrupt frame) are failures to
+    acquire that say why, whatever the draw: before the surface check the detector, whose smoothing scales with
+    the measured noise, took most of them for faces. Scans of every simulated sensor profile, a turned head and a
+    smile among them, measure far below the bound (their depth noise within one pixel pitch), and the check turned
+    off (0) lets random depths through to the detector again."""
+    from facerec3d.datasets.synthetic import sensor_profile
+    from facerec3d.preprocess.sampling import check_surface, lateral_pitch, measure_sampling
+    from facerec3d.scan import FaceScan
+
+    r, c = np.mgrid[0:120, 0:160].astype(float)
+    limit = PreprocessConfig().max_noise_pitches
+    accepted_without = 0
+    for span in (50.0, 100.0, 200.0, 700.0):
+        for seed in range(3):
+            z = np.random.default_rng(seed).uniform(-1200.0, -1200.0 + span, r.shape)
+            noise = FaceScan.from_range_image(np.stack([(c - 80) * 2.0, (60 - r) * 2.0, z], axis=-1))
+            with pytest.raises(FailureToAcquire, match="no surface: the depth noise"):
+                Preprocessor()(noise)
+            try:
+                Preprocessor(PreprocessConfig(max_noise_pitches=0.0))(noise)
+                accepted_without += 1
+            except FailureToAcquire:
+                pass
+    assert accepted_without >= 3  # what the check is for
+    for profile in ("frgc", "kinect-v2", "kinect-v2-8bit", "realsense"):
+        scanner = FaceScanner(sensor_profile(profile))
+        for spec in (ScanSpec(subject=1, seed=1), ScanSpec(subject=2, seed=2, expression="smile", yaw=25.0)):
+            scan = scanner.scan(spec).scan
+            sampling = measure_sampling(scan)
+            check_surface(scan, sampling, limit)
+            assert sampling.noise_mm < 1.5 * lateral_pitch(scan) < limit * lateral_pitch(scan), profile
+    with pytest.raises(ValueError, match="max_noise_pitches"):
+        PreprocessConfig(max_noise_pitches=float("nan"))
+
+
 def test_batch_reports_failures_by_name_and_goes_on(tmp_path):
     good = tmp_path / "good.abs.gz"
     save_scan(quick_scan(5).scan, good)

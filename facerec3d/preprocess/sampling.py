@@ -25,6 +25,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from facerec3d.errors import FailureToAcquire
 from facerec3d.scan import FaceScan
 
 
@@ -92,3 +93,21 @@ def measure_sampling(scan: FaceScan) -> Sampling:
     step = depth_step(scan, pitch=pitch)
     noise = step / np.sqrt(12.0) if step > 0 else depth_noise(scan)
     return Sampling(pitch, step, float(noise))
+
+
+def lateral_pitch(scan: FaceScan) -> float:
+    """The typical x–y distance between neighbouring pixels (mm): `FaceScan.resolution` of the points flattened
+    onto one plane, so that depth noise, which lengthens the 3D pitch, does not enter."""
+    return scan.replace(points=np.c_[scan.points[:, :2], np.zeros(scan.n_points)]).resolution()
+
+
+def check_surface(scan: FaceScan, sampling: Sampling, max_noise_pitches: float) -> None:
+    """FailureToAcquire when the scan's depth noise σ (`sampling.noise_mm`) exceeds `max_noise_pitches` lateral
+    pixel pitches: random depths (a broken sensor, a corrupt frame) rather than a surface. No depth camera comes
+    near it (its σ is about one pitch or less), but every threshold of preprocessing scales with the measured
+    noise, so smoothing meant for such a frame can turn random depths into a face-like surface. 0 turns it off."""
+    pitch = lateral_pitch(scan)
+    if max_noise_pitches > 0 and sampling.noise_mm > max_noise_pitches * pitch:
+        raise FailureToAcquire(f"no surface: the depth noise (σ {sampling.noise_mm:.3g} mm) is "
+                               f"{sampling.noise_mm / pitch:.3g} pixel pitches ({pitch:.3g} mm), a surface's at most "
+                               f"{max_noise_pitches:g}: random depths, not a camera's frame", scan.meta.path)
