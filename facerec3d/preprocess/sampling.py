@@ -106,8 +106,10 @@ def check_surface(scan: FaceScan, sampling: Sampling, max_noise_pitches: float) 
     pixel pitches: random depths (a broken sensor, a corrupt frame) rather than a surface. No depth camera comes
     near it (its σ is about one pitch or less), but every threshold of preprocessing scales with the measured
     noise, so smoothing meant for such a frame can turn random depths into a face-like surface. 0 turns it off."""
+    if not max_noise_pitches > 0:
+        return
     pitch = lateral_pitch(scan)
-    if max_noise_pitches > 0 and sampling.noise_mm > max_noise_pitches * pitch:
+    if sampling.noise_mm > max_noise_pitches * pitch:
         raise FailureToAcquire(f"no surface: the depth noise (σ {sampling.noise_mm:.3g} mm) is "
                                f"{sampling.noise_mm / pitch:.3g} pixel pitches ({pitch:.3g} mm), a surface's at most "
                                f"{max_noise_pitches:g}: random depths, not a camera's frame", scan.meta.path)
