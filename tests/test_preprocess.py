@@ -486,3 +486,77 @@ def test_a_robust_model_fit_is_pulled_less_by_a_hand_or_glasses():
                     assert np.array_equal(least_squares.R, fit_face_model(near, R0, t0, c).R)
     least_squares, robust = np.array(errors[0.0]), np.array(errors[3.0])
     assert robust.mean() < 0.8 * least_squares.mean() and robust.max() < least_squares.max(), (robust, least_squares)
+
+
+def test_a_model_fit_looked_at_part_of_the_way_and_finished_is_the_fit_run_at_once():
+    """`pose.ModelFitting`: the fit after k iterations is the fit of a k-iteration schedule (the same first cut-offs),
+    and running on from it gives the fit run to the end at once, to the bit (least squares and robust; the start
+    coefficients kept). A rigid fit runs to its end in one call whatever is asked."""
+    from dataclasses import replace
+
+    from facerec3d.geometry.transforms import rotation_from_euler
+    from facerec3d.preprocess.detect import DetectConfig
+    from facerec3d.preprocess.pose import ModelFitting, fit_face_model
+
+    model, coarse = DetectConfig().model, DetectConfig().coarse
+    s = quick_scan(3, "smile", yaw=20.0, seed=3, identity=identity_profile("outside-model"), occluder="hand")
+    nose = s.landmarks["nose_tip"]
+    near = s.scan.points[np.linalg.norm(s.scan.points - nose, axis=1) <= 100.0]
+    R0 = rotation_from_euler(6.0, 4.0, 0.0) @ s.rotation.T
+    t0 = -R0 @ nose + np.array([4.0, -4.0, 3.0])
+    start = np.linspace(-0.5, 0.5, 20)
+    same = lambda a, b: all(np.array_equal(getattr(a, k), getattr(b, k)) for k in ("R", "t", "coefficients",
+                                                                                     "vertices", "vertex_normals")) \
+        and (a.rms_mm, a.inlier_fraction) == (b.rms_mm, b.inlier_fraction)
+    for robust in (0.0, 3.0):
+        c = replace(model, robust_mm=robust)
+        whole = fit_face_model(near, R0, t0, c, start=start)
+        for k in (1, 4, 9):
+            fitting = ModelFitting(near, R0, t0, c, start=start).run(k)
+            part = fitting.result()
+            shorter = replace(c, iterations=k, end_distance_mm=c.start_distance_mm
+                              + (c.end_distance_mm - c.start_distance_mm) * (k - 1) / (c.iterations - 1))
+            assert same(part, fit_face_model(near, R0, t0, shorter, start=start))
+            assert not same(part, whole)
+            assert same(fitting.run(1).run().result(), whole)
+            assert same(fitting.run().result(), whole)  # nothing left to run
+    rigid = ModelFitting(near, R0, t0, coarse).run(2).result()
+    assert same(rigid, fit_face_model(near, R0, t0, coarse))
+
+
+@pytest.mark.parametrize("kind", ["frgc", "kinect-v2", "realsense"])
+def test_finalists_ranked_after_a_few_iterations_keep_the_placement_that_fitting_all_to_the_end_chooses(kind,
+                                                                                                         monkeypatch):
+    """`DetectConfig.screen_iterations` / `screened`: every finalist is fitted `screen_iterations` iterations and
+    only the `screened` best so ranked are fitted to the end; on faces turned up to 35° with expressions and an
+    occluder the detection is the one that fitting every finalist to the end gives, to the bit, and on the face
+    (the generator's nose, not another finalist's placement). Each finalist's fit is run that far, and only the kept ones further."""
+    from dataclasses import replace
+
+    from facerec3d.datasets.synthetic import sensor_profile
+    from facerec3d.preprocess import detect, pipeline, pose
+
+    cfg = PreprocessConfig()
+    seen = []  # the scans the pipeline detects faces on (gridded, despiked, smoothed)
+    monkeypatch.setattr(pipeline, "detect_face", lambda scan, config: seen.append(scan) or detect.detect_face(scan, config))
+    screened, every = cfg.detect, replace(cfg.detect, screen_iterations=0)
+    assert 0 < screened.screen_iterations < screened.model.iterations and 0 < screened.screened < screened.finalists
+    runs = []
+    real_run = pose.ModelFitting.run
+    monkeypatch.setattr(pose.ModelFitting, "run", lambda self, n=None: runs.append((id(self), n, self.c.size)) or real_run(self, n))
+    for seed, (expression, yaw, occluder) in enumerate((("neutral", 0.0, None), ("smile", 35.0, None),
+                                                        ("surprise", -25.0, "hand"))):
+        truth = quick_scan(seed, expression, yaw=yaw, seed=seed, scanner=sensor_profile(kind),
+                           identity=identity_profile("outside-model"), occluder=occluder)
+        Preprocessor(cfg)(truth.scan)
+        scan = seen[-1]
+        runs.clear()
+        a = detect.detect_face(scan, screened)
+        partial = [i for i, n, modes in runs if modes and n == screened.screen_iterations]
+        finished = [i for i, n, modes in runs if modes and n is None]  # (the coarse fits have no modes)
+        assert len(partial) == screened.finalists and len(finished) == screened.screened
+        assert set(finished) <= set(partial)
+        b = detect.detect_face(scan, every)
+        assert np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t) and a.fit_rms_mm == b.fit_rms_mm
+        # the placement on the face, not one of the other finalists (they lie separation_mm apart or more)
+        assert np.linalg.norm(a.nose_tip - truth.landmarks["nose_tip"]) < screened.separation_mm / 2

@@ -26,6 +26,7 @@ with no such placement: nothing scanned, a wall, the back of a head, a hand.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -37,7 +38,7 @@ from facerec3d.errors import FailureToAcquire, short_of
 from facerec3d.geometry.ball import BallIndex, nearest_index, within_ball
 from facerec3d.geometry.normals import least_eigenvector
 from facerec3d.geometry.transforms import rotation_from_euler
-from facerec3d.preprocess.pose import ModelFit, ModelFitConfig, fit_face_model, hotelling_rotation
+from facerec3d.preprocess.pose import ModelFit, ModelFitConfig, ModelFitting, fit_face_model, hotelling_rotation
 from facerec3d.scan import FaceScan
 
 
@@ -90,6 +91,10 @@ class DetectConfig:
     #                     the frontal nose of a bowed head was left out of 4 on rap3df-2019; 8 since 2026-12-04, when
     #                     every start yaw's placement began to compete: with 6, four bowed heads of rap3df-2019 lost
     #                     their nose, with 7 one; detection ~1.28× slower, docs/methods.md) ...
+    screen_iterations: int = 4  # ... first fitted this many of their iterations and ranked (`rank_placements`) ...
+    screened: int = 2  # ... and only this many best so ranked fitted to the end (0 in either: every finalist fitted
+    #                    to the end). On the 521 rap3df-2019 frames and 47 synthetic scans, 4 winners of 567 changed
+    #                    (4 of 8 ranked after 4 iterations: 2); the full fits cost ~45 % less (docs/benchmarks.md)
     identity_penalty: float = 0.1  # ... and the best `placement_score` wins: the identity prior regularises, never gates
     prominence_weight: float = 0.35  # ... with a bonus for a nose standing out as noses do (`prominence`) ...
     prominence_mm: float = 20.0  # ... up to this height above its plane and its dome ...
@@ -270,28 +275,18 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
         why = "no face-like surface found" if first is None else (
             f"no face fits: at best {first.inlier_fraction:.0%} of the points near a nose candidate fit a face")
         raise FailureToAcquire(why, scan.meta.path)
-    # the best distinct placements get a full fit (pose, identity, expression)
-    fits = []
-    for f in finalists:
-        near = around.points(f, config.context_mm, exact=True)
-        fits.append(fit_face_model(near, f.R, f.t, config.model))
-    # the best face-shaped placement wins: a nose standing out of the scanned surface (`nose_heights`) and a
-    # face surface the camera could have seen (`seen_share`); ranked by the rigid mean face fitting there (the
-    # coarse fit), the full model fitting with a likely identity and the seen share, less the head penalty
-    shaped = [(f, c, nose_heights(around.points(f, _heights_reach(config)), f, config),
-               seen_share(scan, f, config, around)) for f, c in zip(fits, finalists)]
-    face_shaped = lambda f, h, seen: (is_nose(h, config) and seen[1] >= config.min_seen
-                                      and f.inlier_fraction >= config.min_inliers)
-    best_rms = min((f.rms_mm for f, _, h, seen in shaped if face_shaped(f, h, seen) and np.isfinite(f.rms_mm)),
-                   default=0.0)  # the smoothest face-shaped placement's: a smoother one that is no face (hair, the
-    #                             back of a head) sets no bar
-    shaped.sort(key=lambda x: -(x[1].inlier_fraction + placement_score(x[0], config) + x[3][0]
-                                + prominence(x[2], config) - head_penalty(x[0], sub, crown, config)
-                                - (config.rms_weight * rms_excess(x[0].rms_mm, best_rms, config.rms_tolerance)
-                                   if config.rms_weight else 0.0)))
-    passing = [(f, h[0]) for f, _, h, seen in shaped if face_shaped(f, h, seen)]
-    if not passing:
-        fit, _, (protrusion, dome), (_, seen) = shaped[0]
+    # the best distinct placements get a full fit (pose, identity, expression); with `screen_iterations`, each
+    # is fitted that far first and only the `screened` best so ranked are fitted to the end
+    fitting = [ModelFitting(around.points(f, config.context_mm, exact=True), f.R, f.t, config.model)
+               for f in finalists]
+    if 0 < config.screen_iterations < config.model.iterations and config.screened < len(finalists):
+        ranked = rank_placements([g.run(config.screen_iterations).result() for g in fitting], finalists, scan,
+                                 around, sub, crown, config)
+        keep = sorted(x.index for x in ranked[: config.screened])  # in the finalists' order (ties stay as they were)
+        fitting, finalists = [fitting[i] for i in keep], [finalists[i] for i in keep]
+    ranked = rank_placements([g.run().result() for g in fitting], finalists, scan, around, sub, crown, config)
+    fit, (protrusion, dome), (_, seen) = ranked[0].fit, ranked[0].heights, ranked[0].seen
+    if not ranked[0].face_shaped:
         if fit.inlier_fraction < config.min_inliers:
             why = f"the face model does not fit ({fit.inlier_fraction:.0%} of points)"
         elif protrusion < config.min_protrusion_mm:
@@ -304,13 +299,46 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
         else:
             why = f"no face-shaped surface: the camera saw only {seen:.0%} of where the fitted face would be"
         raise FailureToAcquire(why, scan.meta.path)
-    # a placement whose face disc the scan hardly covers (a fit to a small patch) goes after those it covers
-    pitch = scan.resolution()
-    passing.sort(key=lambda x: disc_coverage(around.points(x[0], _disc_reach(config)), x[0], pitch, config)
-                 < config.min_disc_coverage)
-    fit, protrusion = passing[0]
     return Detection(fit.landmarks["nose_tip"], fit.R, fit.t, fit.landmarks, fit.rms_mm, fit.inlier_fraction,
                      protrusion, fit.coefficients)
+
+
+class Placement(NamedTuple):
+    """A finalist's full fit as `rank_placements` judges it."""
+
+    index: int  # among the finalists ranked
+    fit: ModelFit  # the full fit
+    coarse: ModelFit  # the coarse placement it started from
+    heights: tuple[float, float]  # `nose_heights`
+    seen: tuple[float, float]  # `seen_share`
+    face_shaped: bool  # a nose (`is_nose`), seen (`min_seen`) and the full model fitting (`min_inliers`)
+
+
+def rank_placements(fits: list[ModelFit], coarse: list[ModelFit], scan: FaceScan, around: Neighbours,
+                    sub: FaceScan, crown: np.ndarray, config: DetectConfig = DetectConfig()) -> list[Placement]:
+    """The finalists' full fits (`fits`, of the coarse placements `coarse`), best first. The face-shaped ones come
+    first: a nose standing out of the scanned surface (`nose_heights`), a face surface the camera could have seen
+    (`seen_share`) and the full model fitting; among them those whose face disc the scan covers (`disc_coverage`) before those it
+    hardly covers (a fit to a small patch). Within each group they are ranked by the rigid mean face fitting there
+    (the coarse fit), the full model fitting with a likely identity and the seen share, less the head penalty and
+    how much rougher the fit's residue is than the smoothest face-shaped placement's (`rms_excess`)."""
+    shaped = []
+    for i, (f, c) in enumerate(zip(fits, coarse)):
+        heights, seen = nose_heights(around.points(f, _heights_reach(config)), f, config), seen_share(scan, f, config,
+                                                                                                    around)
+        face = is_nose(heights, config) and seen[1] >= config.min_seen and f.inlier_fraction >= config.min_inliers
+        shaped.append(Placement(i, f, c, heights, seen, face))
+    best_rms = min((x.fit.rms_mm for x in shaped if x.face_shaped and np.isfinite(x.fit.rms_mm)),
+                   default=0.0)  # the smoothest face-shaped placement's: a smoother one that is no face (hair, the
+    #                             back of a head) sets no bar
+    shaped.sort(key=lambda x: -(x.coarse.inlier_fraction + placement_score(x.fit, config) + x.seen[0]
+                                + prominence(x.heights, config) - head_penalty(x.fit, sub, crown, config)
+                                - (config.rms_weight * rms_excess(x.fit.rms_mm, best_rms, config.rms_tolerance)
+                                   if config.rms_weight else 0.0)))
+    pitch = scan.resolution()
+    small = lambda x: (disc_coverage(around.points(x.fit, _disc_reach(config)), x.fit, pitch, config)
+                       < config.min_disc_coverage)
+    return sorted((x for x in shaped if x.face_shaped), key=small) + [x for x in shaped if not x.face_shaped]
 
 
 def best_distinct(ranked: list[ModelFit], passes, separation_mm: float,

@@ -590,55 +590,86 @@ def fit_face_model(points: np.ndarray, R: np.ndarray, t: np.ndarray, config: Mod
     "Parameter estimation techniques", IVC 1997), so points the model
     cannot explain, such as an occluder lying near the face, pull it less.
     """
-    fb = _fit_basis(config)
-    robust_mm = (config.robust_mm if robust_mm is None else robust_mm) or None
-    points = np.ascontiguousarray(points[:: max(1, len(points) // config.max_points)], dtype=np.float64)
-    K = fb.basis.shape[2]
-    c = np.zeros(K)
-    if start is not None:  # those given, zeros after them
-        given = np.asarray(start, dtype=np.float64)[:K]
-        c[: len(given)] = given
-    R, t = np.asarray(R, float), np.asarray(t, float)
-    n = config.iterations
-    V, normals, grid = fb.mean, fb.normals, fb.grid
-    if c.any():
-        V = _shaped(fb, c)
-        normals, grid = _normals(V, fb.triangles), _shaped_grid(fb, V)
-    prev = np.full(len(points), -1, dtype=np.int64)  # each point's last partner, where the search starts
-    cutoffs = [config.start_distance_mm + (config.end_distance_mm - config.start_distance_mm) * i / max(n - 1, 1)
-               for i in range(n)]  # the shrinking cut-off of each iteration
-    exact = _NO_MAP
-    if not K:  # a rigid fit of the mean face: through its map, every iteration in one compiled call
-        key = (config.identity_modes, config.expression_modes, config.radius_mm)
-        reach = min(max(config.start_distance_mm, config.end_distance_mm), _MAP_REACH_MM)
-        exact = _face_map(*key, _MAP_MM, reach, True)
-        pairs = _face_map(*key, config.lookup_mm, reach, False) if config.lookup_mm > 0 else exact
-        R, t = _rigid_fit(points, R, t, np.array(cutoffs), robust_mm or 0.0, prev, V, normals, fb.boundary, fb.basis,
-                          pairs, *grid.args())
-    else:  # the prior's weights: none on the pose, λ on each coefficient
-        reg = np.zeros(6 + K)
-        reg[6:] = config.regularisation
-        prior = np.diag(reg)
-    for cutoff in cutoffs if K else []:
-        J, r = _linearise(points, R, t, cutoff, prev, V, normals, fb.boundary, fb.basis, _NO_MAP, *grid.args())
-        if len(r) < 50:
-            break
-        if robust_mm is not None:  # IRLS: rows scaled by the square root of the Cauchy weight
-            w = np.sqrt(1.0 / (1.0 + (r / robust_mm) ** 2))
-            J, r = J * w[:, None], r * w
-        x = np.linalg.solve(J.T @ J + prior, -(J.T @ r) - reg * np.concatenate([np.zeros(6), c]))
-        R, t = _moved(x, R, t)
-        c = c + x[6:]
-        V = _shaped(fb, c)
-        normals, grid = _normals(V, fb.triangles), _shaped_grid(fb, V)
-    nose = V[fb.landmarks["nose_tip"]]
-    landmarks = {name: R.T @ (V[k] - t) for name, k in fb.landmarks.items()}
-    p = points @ R.T + (t - nose)
-    core = np.linalg.norm(p, axis=1) <= config.core_radius_mm
-    q = p[core] + nose
-    j = _query(q, np.inf, prev[core], V, exact, *grid.args())
-    dist = np.abs(np.einsum("ij,ij->i", normals[j], q - V[j]))
-    good = dist <= config.inlier_mm
-    rms = float(np.sqrt(np.mean(dist[good] ** 2))) if good.any() else float("inf")
-    return ModelFit(R, t - nose, landmarks, rms, float(good.mean()) if len(good) else 0.0, c, V - nose,
-                    normals.copy() if normals is fb.normals else normals)
+    return ModelFitting(points, R, t, config, start, robust_mm).run().result()
+
+
+class ModelFitting:
+    """`fit_face_model` run a few iterations at a time: `run(n)` does the next n iterations of the cut-off schedule
+    (all that are left without n), `result()` is the fit so far. A fit looked at part of the way and then run to
+    the end is the fit run to the end at once, to the bit (the detector ranks its finalists part of the way and
+    finishes the best: `DetectConfig.screen_iterations`). A rigid fit (no modes) runs all its iterations in one
+    compiled call whatever n is."""
+
+    def __init__(self, points: np.ndarray, R: np.ndarray, t: np.ndarray, config: ModelFitConfig = ModelFitConfig(),
+                 start: np.ndarray | None = None, robust_mm: float | None = None):
+        fb = self.fb = _fit_basis(config)
+        self.config = config
+        self.robust_mm = (config.robust_mm if robust_mm is None else robust_mm) or None
+        self.points = np.ascontiguousarray(points[:: max(1, len(points) // config.max_points)], dtype=np.float64)
+        K = fb.basis.shape[2]
+        self.c = np.zeros(K)
+        if start is not None:  # those given, zeros after them
+            given = np.asarray(start, dtype=np.float64)[:K]
+            self.c[: len(given)] = given
+        self.R, self.t = np.asarray(R, float), np.asarray(t, float)
+        n = config.iterations
+        self.V, self.normals, self.grid = fb.mean, fb.normals, fb.grid
+        if self.c.any():
+            self.V = _shaped(fb, self.c)
+            self.normals, self.grid = _normals(self.V, fb.triangles), _shaped_grid(fb, self.V)
+        self.prev = np.full(len(self.points), -1, dtype=np.int64)  # each point's last partner, where searches start
+        self.cutoffs = [config.start_distance_mm + (config.end_distance_mm - config.start_distance_mm) * i
+                        / max(n - 1, 1) for i in range(n)]  # the shrinking cut-off of each iteration
+        self.done = 0  # iterations run (all of them once the fit stopped for want of pairs)
+        self.exact = _NO_MAP
+        if K:  # the prior's weights: none on the pose, λ on each coefficient
+            self.reg = np.zeros(6 + K)
+            self.reg[6:] = config.regularisation
+            self.prior = np.diag(self.reg)
+        else:  # a rigid fit of the mean face pairs through its map
+            key = (config.identity_modes, config.expression_modes, config.radius_mm)
+            reach = min(max(config.start_distance_mm, config.end_distance_mm), _MAP_REACH_MM)
+            self.exact = _face_map(*key, _MAP_MM, reach, True)
+            self.pairs = _face_map(*key, config.lookup_mm, reach, False) if config.lookup_mm > 0 else self.exact
+
+    def run(self, iterations: int | None = None) -> ModelFitting:
+        fb, points, prev = self.fb, self.points, self.prev
+        todo = self.cutoffs[self.done:] if iterations is None else self.cutoffs[self.done:self.done + iterations]
+        if not self.c.size:  # every iteration in one compiled call
+            todo = self.cutoffs[self.done:]
+            self.R, self.t = _rigid_fit(points, self.R, self.t, np.array(todo), self.robust_mm or 0.0, prev, self.V,
+                                        self.normals, fb.boundary, fb.basis, self.pairs, *self.grid.args())
+            todo = []
+            self.done = len(self.cutoffs)
+        for cutoff in todo:
+            J, r = _linearise(points, self.R, self.t, cutoff, prev, self.V, self.normals, fb.boundary, fb.basis,
+                              _NO_MAP, *self.grid.args())
+            if len(r) < 50:
+                self.done = len(self.cutoffs)
+                break
+            self.done += 1
+            if self.robust_mm is not None:  # IRLS: rows scaled by the square root of the Cauchy weight
+                w = np.sqrt(1.0 / (1.0 + (r / self.robust_mm) ** 2))
+                J, r = J * w[:, None], r * w
+            x = np.linalg.solve(J.T @ J + self.prior, -(J.T @ r) - self.reg * np.concatenate([np.zeros(6), self.c]))
+            self.R, self.t = _moved(x, self.R, self.t)
+            self.c = self.c + x[6:]
+            self.V = _shaped(fb, self.c)
+            self.normals, self.grid = _normals(self.V, fb.triangles), _shaped_grid(fb, self.V)
+        return self
+
+    def result(self) -> ModelFit:
+        """The fit as it stands: pose with the nose tip at the origin, fiducials, and its RMS and inlier share over
+        the scan points within `core_radius_mm` of the nose tip."""
+        fb, R, t, V, normals = self.fb, self.R, self.t, self.V, self.normals
+        nose = V[fb.landmarks["nose_tip"]]
+        landmarks = {name: R.T @ (V[k] - t) for name, k in fb.landmarks.items()}
+        p = self.points @ R.T + (t - nose)
+        core = np.linalg.norm(p, axis=1) <= self.config.core_radius_mm
+        q = p[core] + nose
+        j = _query(q, np.inf, self.prev[core], V, self.exact, *self.grid.args())
+        dist = np.abs(np.einsum("ij,ij->i", normals[j], q - V[j]))
+        good = dist <= self.config.inlier_mm
+        rms = float(np.sqrt(np.mean(dist[good] ** 2))) if good.any() else float("inf")
+        return ModelFit(R, t - nose, landmarks, rms, float(good.mean()) if len(good) else 0.0, self.c, V - nose,
+                        normals.copy() if normals is fb.normals else normals)
