@@ -91,10 +91,13 @@ class DetectConfig:
     #                     the frontal nose of a bowed head was left out of 4 on rap3df-2019; 8 since 2026-12-04, when
     #                     every start yaw's placement began to compete: with 6, four bowed heads of rap3df-2019 lost
     #                     their nose, with 7 one; detection ~1.28× slower, docs/methods.md) ...
-    screen_iterations: int = 4  # ... first fitted this many of their iterations and ranked (`rank_placements`) ...
-    screened: int = 2  # ... and only this many best so ranked fitted to the end (0 in either: every finalist fitted
-    #                    to the end). On the 521 rap3df-2019 frames and 47 synthetic scans, 4 winners of 567 changed
-    #                    (4 of 8 ranked after 4 iterations: 2); the full fits cost ~45 % less (docs/benchmarks.md)
+    screen_iterations: int = 0  # ... 0: every finalist fitted to the end; n > 0: each fitted n iterations first,
+    #                             ranked (`rank_placements`) ...
+    screened: int = 2  # ... and only this many best so ranked fitted to the end. An option for speed
+    #                    (examples/preprocess-fast.toml: 4 and 2), not the default: the full fits of 4 rap3df-2019
+    #                    frames of 521 and 2 synthetic outside-model scans of 600 end elsewhere (turned heads,
+    #                    glasses), the default fusion lost 1 probe on the real held-out half, test60-outside and
+    #                    strong60-outside each, for a Kinect frame 1.05-1.12x faster (docs/benchmarks.md)
     identity_penalty: float = 0.1  # ... and the best `placement_score` wins: the identity prior regularises, never gates
     prominence_weight: float = 0.35  # ... with a bonus for a nose standing out as noses do (`prominence`) ...
     prominence_mm: float = 20.0  # ... up to this height above its plane and its dome ...

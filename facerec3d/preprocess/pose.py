@@ -513,20 +513,20 @@ def _mapped(x0, x1, x2, cutoff2, V, mlo, mh, mdims, mstart, mitems, mreach2, mex
 
 @njit(cache=True)
 def _rigid_fit(points, R, t, cutoffs, robust, prev, V, normals, boundary, basis, face_map, *grid):  # pragma: no cover
-    """`fit_face_model`'s iterations without modes: (R, t) after one `_rigid_step` per cut-off (stopping when fewer
-    than 50 pairs are left; rows weighted as its IRLS does when `robust` > 0), as its Python loop does them,
-    without a call per iteration; pairs through `face_map` (`_linearise`)."""
+    """`fit_face_model`'s iterations without modes: (R, t, whether it stopped) after one `_rigid_step` per cut-off
+    (stopping when fewer than 50 pairs are left; rows weighted as its IRLS does when `robust` > 0), as its Python
+    loop does them, without a call per iteration; pairs through `face_map` (`_linearise`)."""
     for cutoff in cutoffs:
         J, r = _linearise(points, R, t, cutoff, prev, V, normals, boundary, basis, face_map, *grid)
         if r.shape[0] < 50:
-            break
+            return R, t, True
         if robust > 0:
             for i in range(r.shape[0]):
                 w = np.sqrt(1.0 / (1.0 + (r[i] / robust) ** 2))
                 J[i, :] *= w
                 r[i] *= w
         R, t = _rigid_step(J, r, R, t)
-    return R, t
+    return R, t, False
 
 
 @njit(cache=True)
@@ -597,8 +597,8 @@ class ModelFitting:
     """`fit_face_model` run a few iterations at a time: `run(n)` does the next n iterations of the cut-off schedule
     (all that are left without n), `result()` is the fit so far. A fit looked at part of the way and then run to
     the end is the fit run to the end at once, to the bit (the detector ranks its finalists part of the way and
-    finishes the best: `DetectConfig.screen_iterations`). A rigid fit (no modes) runs all its iterations in one
-    compiled call whatever n is."""
+    finishes the best: `DetectConfig.screen_iterations`). A rigid fit (no modes) runs the iterations of each call in
+    one compiled call."""
 
     def __init__(self, points: np.ndarray, R: np.ndarray, t: np.ndarray, config: ModelFitConfig = ModelFitConfig(),
                  start: np.ndarray | None = None, robust_mm: float | None = None):
@@ -635,12 +635,12 @@ class ModelFitting:
     def run(self, iterations: int | None = None) -> ModelFitting:
         fb, points, prev = self.fb, self.points, self.prev
         todo = self.cutoffs[self.done:] if iterations is None else self.cutoffs[self.done:self.done + iterations]
-        if not self.c.size:  # every iteration in one compiled call
-            todo = self.cutoffs[self.done:]
-            self.R, self.t = _rigid_fit(points, self.R, self.t, np.array(todo), self.robust_mm or 0.0, prev, self.V,
-                                        self.normals, fb.boundary, fb.basis, self.pairs, *self.grid.args())
+        if not self.c.size:  # a rigid fit: these iterations in one compiled call
+            self.R, self.t, stopped = _rigid_fit(points, self.R, self.t, np.array(todo, dtype=np.float64),
+                                                 self.robust_mm or 0.0, prev, self.V, self.normals, fb.boundary,
+                                                 fb.basis, self.pairs, *self.grid.args())
+            self.done = len(self.cutoffs) if stopped else self.done + len(todo)
             todo = []
-            self.done = len(self.cutoffs)
         for cutoff in todo:
             J, r = _linearise(points, self.R, self.t, cutoff, prev, self.V, self.normals, fb.boundary, fb.basis,
                               _NO_MAP, *self.grid.args())
