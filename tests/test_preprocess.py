@@ -505,9 +505,12 @@ def test_a_model_fit_looked_at_part_of_the_way_and_finished_is_the_fit_run_at_on
     R0 = rotation_from_euler(6.0, 4.0, 0.0) @ s.rotation.T
     t0 = -R0 @ nose + np.array([4.0, -4.0, 3.0])
     start = np.linspace(-0.5, 0.5, 20)
-    same = lambda a, b: all(np.array_equal(getattr(a, k), getattr(b, k)) for k in ("R", "t", "coefficients",
-                                                                                     "vertices", "vertex_normals")) \
-        and (a.rms_mm, a.inlier_fraction) == (b.rms_mm, b.inlier_fraction)
+
+    def same(a, b):
+        arrays = ("R", "t", "coefficients", "vertices", "vertex_normals")
+        return (all(np.array_equal(getattr(a, k), getattr(b, k)) for k in arrays)
+                and (a.rms_mm, a.inlier_fraction) == (b.rms_mm, b.inlier_fraction))
+
     for robust in (0.0, 3.0):
         c = replace(model, robust_mm=robust)
         whole = fit_face_model(near, R0, t0, c, start=start)
@@ -526,12 +529,13 @@ def test_a_model_fit_looked_at_part_of_the_way_and_finished_is_the_fit_run_at_on
 
 
 @pytest.mark.parametrize("kind", ["frgc", "kinect-v2", "realsense"])
-def test_finalists_ranked_after_a_few_iterations_keep_the_placement_that_fitting_all_to_the_end_chooses(kind,
-                                                                                                         monkeypatch):
+def test_finalists_ranked_after_a_few_iterations_keep_the_placement_that_fitting_all_to_the_end_chooses(
+        kind, monkeypatch):
     """`DetectConfig.screen_iterations` / `screened` (examples/preprocess-fast.toml; off by default): every finalist
-    is fitted `screen_iterations` iterations and only the `screened` best so ranked are fitted to the end; on faces turned up to 35° with expressions and an
-    occluder the detection is the one that fitting every finalist to the end gives, to the bit, and on the face
-    (the generator's nose, not another finalist's placement). Each finalist's fit is run that far, and only the kept ones further."""
+    is fitted `screen_iterations` iterations and only the `screened` best so ranked are fitted to the end. On faces
+    turned up to 35° with expressions and an occluder the detection is the one that fitting every finalist to the
+    end gives, to the bit, and on the face (the generator's nose, not another finalist's placement). Each
+    finalist's fit is run that far, and only the kept ones further."""
     from dataclasses import replace
 
     from facerec3d.datasets.synthetic import sensor_profile
@@ -540,12 +544,16 @@ def test_finalists_ranked_after_a_few_iterations_keep_the_placement_that_fitting
     cfg = PreprocessConfig()
     fast = PreprocessConfig.load(Path(__file__).parents[1] / "examples" / "preprocess-fast.toml").detect
     seen = []  # the scans the pipeline detects faces on (gridded, despiked, smoothed)
-    monkeypatch.setattr(pipeline, "detect_face", lambda scan, config: seen.append(scan) or detect.detect_face(scan, config))
-    screened, every = replace(cfg.detect, screen_iterations=fast.screen_iterations, screened=fast.screened), cfg.detect
-    assert every.screen_iterations == 0 and 0 < screened.screen_iterations < screened.model.iterations and 0 < screened.screened < screened.finalists
+    monkeypatch.setattr(pipeline, "detect_face",
+                        lambda scan, config: seen.append(scan) or detect.detect_face(scan, config))
+    screened = replace(cfg.detect, screen_iterations=fast.screen_iterations, screened=fast.screened)
+    every = cfg.detect
+    assert every.screen_iterations == 0
+    assert 0 < screened.screen_iterations < screened.model.iterations and 0 < screened.screened < screened.finalists
     runs = []
     real_run = pose.ModelFitting.run
-    monkeypatch.setattr(pose.ModelFitting, "run", lambda self, n=None: runs.append((id(self), n, self.c.size)) or real_run(self, n))
+    monkeypatch.setattr(pose.ModelFitting, "run",
+                        lambda self, n=None: runs.append((id(self), n, self.c.size)) or real_run(self, n))
     for seed, (expression, yaw, occluder) in enumerate((("neutral", 0.0, None), ("smile", 35.0, None),
                                                         ("surprise", -25.0, "hand"))):
         truth = quick_scan(seed, expression, yaw=yaw, seed=seed, scanner=sensor_profile(kind),

@@ -321,14 +321,15 @@ def rank_placements(fits: list[ModelFit], coarse: list[ModelFit], scan: FaceScan
                     sub: FaceScan, crown: np.ndarray, config: DetectConfig = DetectConfig()) -> list[Placement]:
     """The finalists' full fits (`fits`, of the coarse placements `coarse`), best first. The face-shaped ones come
     first: a nose standing out of the scanned surface (`nose_heights`), a face surface the camera could have seen
-    (`seen_share`) and the full model fitting; among them those whose face disc the scan covers (`disc_coverage`) before those it
-    hardly covers (a fit to a small patch). Within each group they are ranked by the rigid mean face fitting there
-    (the coarse fit), the full model fitting with a likely identity and the seen share, less the head penalty and
-    how much rougher the fit's residue is than the smoothest face-shaped placement's (`rms_excess`)."""
+    (`seen_share`) and the full model fitting; among them those whose face disc the scan covers (`disc_coverage`)
+    before those it hardly covers (a fit to a small patch). Within each group they are ranked by the rigid mean
+    face fitting there (the coarse fit), the full model fitting with a likely identity and the seen share, less the
+    head penalty and how much rougher the fit's residue is than the smoothest face-shaped placement's
+    (`rms_excess`)."""
     shaped = []
     for i, (f, c) in enumerate(zip(fits, coarse)):
-        heights, seen = nose_heights(around.points(f, _heights_reach(config)), f, config), seen_share(scan, f, config,
-                                                                                                    around)
+        heights = nose_heights(around.points(f, _heights_reach(config)), f, config)
+        seen = seen_share(scan, f, config, around)
         face = is_nose(heights, config) and seen[1] >= config.min_seen and f.inlier_fraction >= config.min_inliers
         shaped.append(Placement(i, f, c, heights, seen, face))
     best_rms = min((x.fit.rms_mm for x in shaped if x.face_shaped and np.isfinite(x.fit.rms_mm)),
