@@ -633,14 +633,16 @@ class ModelFitting:
             self.pairs = _face_map(*key, config.lookup_mm, reach, False) if config.lookup_mm > 0 else self.exact
 
     def run(self, iterations: int | None = None) -> ModelFitting:
+        """The next `iterations` of the schedule (those left when None; none once the fit stopped); returns self."""
         fb, points, prev = self.fb, self.points, self.prev
         todo = self.cutoffs[self.done:] if iterations is None else self.cutoffs[self.done:self.done + iterations]
         if not self.c.size:  # a rigid fit: these iterations in one compiled call
-            self.R, self.t, stopped = _rigid_fit(points, self.R, self.t, np.array(todo, dtype=np.float64),
-                                                 self.robust_mm or 0.0, prev, self.V, self.normals, fb.boundary,
-                                                 fb.basis, self.pairs, *self.grid.args())
-            self.done = len(self.cutoffs) if stopped else self.done + len(todo)
-            todo = []
+            if todo:
+                self.R, self.t, stopped = _rigid_fit(points, self.R, self.t, np.array(todo, dtype=np.float64),
+                                                     self.robust_mm or 0.0, prev, self.V, self.normals, fb.boundary,
+                                                     fb.basis, self.pairs, *self.grid.args())
+                self.done = len(self.cutoffs) if stopped else self.done + len(todo)
+            return self
         for cutoff in todo:
             J, r = _linearise(points, self.R, self.t, cutoff, prev, self.V, self.normals, fb.boundary, fb.basis,
                               _NO_MAP, *self.grid.args())
