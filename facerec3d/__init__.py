@@ -10,8 +10,12 @@ manifests, evaluation protocols, the synthetic generator), `matching` (ICP
 local processes or a Dask cluster.
 """
 
-from facerec3d.errors import FailureToAcquire, ScanFormatError
-from facerec3d.scan import FaceScan, ScanMeta
+from facerec3d.jit import stamp_kernel_caches
+
+stamp_kernel_caches()  # before any module defines a kernel: a cached kernel goes stale with any kernel it calls
+
+from facerec3d.errors import FailureToAcquire, ScanFormatError  # noqa: E402
+from facerec3d.scan import FaceScan, ScanMeta  # noqa: E402
 
 __version__ = "0.1.0"
 

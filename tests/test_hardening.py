@@ -597,3 +597,27 @@ def test_two_enrolments_at_once_enrol_everything_once(data, tmp_path):
     assert sum(c[0] for c in counts) == 6 and all(sum(c) == 6 for c in counts), outputs
     with GalleryStore(store) as s:
         assert len(s.entries()) == 6 and s.failures() == []
+
+
+def test_a_cached_kernel_is_compiled_again_when_a_kernel_it_calls_changes_in_another_module(tmp_path):
+    """Numba keys a cached kernel on its own module only; `jit.stamp_kernel_caches` makes it stale when any module
+    of the package that defines kernels changes (a `git pull` that touched `geometry/ball.py` alone)."""
+    package = tmp_path / "kpkg"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "a.py").write_text("from numba import njit\nfrom kpkg.b import g\n\n\n@njit(cache=True)\n"
+                                  "def f(x):\n    return g(x) + 1.0\n")
+    callee = "from numba import njit\n\n\n@njit(cache=True)\ndef g(x):\n    return x * {}\n"
+    script = ("import sys\nfrom pathlib import Path\nsys.path.insert(0, sys.argv[1])\n"
+              "from facerec3d.jit import stamp_kernel_caches\n"
+              "assert stamp_kernel_caches(Path(sys.argv[1]) / 'kpkg')\n"
+              "from kpkg.a import f\nprint(f(2.0))\n")
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}  # the kernels' own __pycache__
+    run = lambda: subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True, text=True,
+                                 env=env, check=True).stdout.split()[-1]
+    (package / "b.py").write_text(callee.format("10.0"))
+    assert run() == "21.0"
+    assert run() == "21.0"  # from the cache
+    assert list((package / "__pycache__").glob("a.f-*.nbi"))
+    (package / "b.py").write_text(callee.format("100.0"))  # a.py untouched
+    assert run() == "201.0"
