@@ -327,37 +327,6 @@ def _query(P, cutoff, prev, V, face_map, lo, h, dims, start, order, pts,
 
 
 @njit(cache=True)
-def _inlier_score(p, radius, nose, inlier_mm, prev, V, normals, face_map, lo, h, dims, start, order, pts,
-                  flo, fh, fdims, fdist, fnear, shift):  # pragma: no cover - compiled
-    """`ModelFitting.result`'s score in one pass: of the points p (the fit's frontal frame, nose tip at the origin)
-    within `radius` of the nose tip, (how many, how many lie within `inlier_mm` of the model's surface, point to
-    plane at their nearest vertex of V (moved by `nose`), the sum of those distances squared). The same pairs and
-    distances as NumPy's calls would give, summed in another order: the RMS may differ from theirs in its last
-    bit."""
-    m = p.shape[0]
-    q = np.empty((m, 3))
-    core = np.empty(m, np.int64)
-    n = 0
-    for i in range(m):  # np.linalg.norm(p, axis=1) <= radius: the same sums in the same order
-        if np.sqrt(p[i, 0] * p[i, 0] + p[i, 1] * p[i, 1] + p[i, 2] * p[i, 2]) <= radius:
-            for d in range(3):
-                q[n, d] = p[i, d] + nose[d]
-            core[n] = i
-            n += 1
-    j = _query(q[:n], np.inf, prev[core[:n]], V, face_map, lo, h, dims, start, order, pts, flo, fh, fdims, fdist,
-               fnear, shift)
-    good, squares = 0, 0.0
-    for i in range(n):
-        k = j[i]
-        d = abs(normals[k, 0] * (q[i, 0] - V[k, 0]) + normals[k, 1] * (q[i, 1] - V[k, 1])
-                + normals[k, 2] * (q[i, 2] - V[k, 2]))
-        if d <= inlier_mm:
-            squares += d * d
-            good += 1
-    return n, good, squares
-
-
-@njit(cache=True)
 def _linearise(points, R, t, cutoff, prev, V, normals, boundary, basis, face_map, lo, h, dims, start, order, pts,
                flo, fh, fdims, fdist, fnear, shift):  # pragma: no cover - compiled
     """One linearised point-to-plane step: each scan point, moved by x -> R x + t, paired with its nearest
@@ -697,9 +666,12 @@ class ModelFitting:
         fb, R, t, V, normals = self.fb, self.R, self.t, self.V, self.normals
         nose = V[fb.landmarks["nose_tip"]]
         landmarks = {name: R.T @ (V[k] - t) for name, k in fb.landmarks.items()}
-        near, good, squares = _inlier_score(self.points @ R.T + (t - nose), self.config.core_radius_mm, nose,
-                                            self.config.inlier_mm, self.prev, V, normals, self.exact,
-                                            *self.grid.args())
-        rms = float(np.sqrt(squares / good)) if good else float("inf")
-        return ModelFit(R, t - nose, landmarks, rms, good / near if near else 0.0, self.c, V - nose,
+        p = self.points @ R.T + (t - nose)
+        core = np.linalg.norm(p, axis=1) <= self.config.core_radius_mm
+        q = p[core] + nose
+        j = _query(q, np.inf, self.prev[core], V, self.exact, *self.grid.args())
+        dist = np.abs(np.einsum("ij,ij->i", normals[j], q - V[j]))
+        good = dist <= self.config.inlier_mm
+        rms = float(np.sqrt(np.mean(dist[good] ** 2))) if good.any() else float("inf")
+        return ModelFit(R, t - nose, landmarks, rms, float(good.mean()) if len(good) else 0.0, self.c, V - nose,
                         normals.copy() if normals is fb.normals else normals)
