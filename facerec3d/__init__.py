@@ -10,9 +10,9 @@ manifests, evaluation protocols, the synthetic generator), `matching` (ICP
 local processes or a Dask cluster.
 """
 
-from facerec3d.jit import stamp_kernel_caches
+from facerec3d.jit import guard_kernel_caches
 
-stamp_kernel_caches()  # before any module defines a kernel: a cached kernel goes stale with any kernel it calls
+guard_kernel_caches()  # before any module defines a kernel (stale or damaged caches of compiled kernels)
 
 from facerec3d.errors import FailureToAcquire, ScanFormatError  # noqa: E402
 from facerec3d.scan import FaceScan, ScanMeta  # noqa: E402

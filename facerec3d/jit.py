@@ -9,19 +9,22 @@ It listens to Numba's own "numba:compile" event (numba.core.event, documented si
 on a cache miss only: looking for cache files instead guesses wrong, e.g. after `facerec3d info` has compiled
 its two kernels a cache exists, yet `facerec3d view` still compiles preprocessing's for about 25 s.
 
-`stamp_kernel_caches` (run by `import facerec3d`, before any kernel is defined) makes the cache of every kernel
-stale when any module that defines kernels changes: Numba looks only at the kernel's own module.
+`guard_kernel_caches` (run by `import facerec3d`, before any kernel is defined) makes the cache of every kernel
+stale when any module that defines kernels changes (Numba looks only at the kernel's own module), and turns a
+damaged cache file into one line and a new compilation instead of a traceback.
 """
 
 from __future__ import annotations
 
 import hashlib
+import os
+import sys
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from functools import lru_cache
 from pathlib import Path
 
-#: The package whose kernels `stamp_kernel_caches` looks after.
+#: The package whose kernels `guard_kernel_caches` looks after.
 PACKAGE = Path(__file__).resolve().parent
 
 #: The line `compilation_notice` prints.
@@ -68,7 +71,7 @@ def kernel_stamp(package: Path) -> str:
     return digest.hexdigest()
 
 
-def stamp_kernel_caches(package: Path = PACKAGE) -> bool:
+def guard_kernel_caches(package: Path = PACKAGE) -> bool:
     """Make Numba's on-disk cache of the kernels under `package` stale whenever any module there that defines
     kernels changes, not only the kernel's own module.
 
@@ -77,16 +80,22 @@ def stamp_kernel_caches(package: Path = PACKAGE) -> bool:
     caching notes): after a `git pull` that changed `geometry/ball.py`, the detector's kernels that call it would
     run the old code from the cache, silently (or crash, where a signature changed). Each of Numba's own cache
     locators is put first again, for the files under `package` only, with its source stamp extended by
-    `kernel_stamp`: any change there compiles the package's kernels again, once (~30 s). Returns whether it was
-    installed (False with a Numba whose caching internals differ: its own behaviour then holds)."""
+    `kernel_stamp`: any change there compiles the package's kernels again, once (~30 s).
+
+    A cache file of those kernels that cannot be read (truncated, overwritten, from a full disk: Numba would stop
+    the command with a traceback from `pickle`) is said in one line on stderr, removed, and the kernel compiled
+    again; one that cannot be written (a read-only or full disk) leaves the kernel compiled in memory only, also
+    said in one line. Returns whether all this was installed (False with a Numba whose caching internals differ:
+    its own behaviour then holds)."""
     try:
         from numba.core import caching
     except ImportError:
         return False
     named = lambda name: getattr(caching, name, None) or getattr(caching, "_" + name, None)
-    impl = named("CacheImpl")
+    impl, cache = named("CacheImpl"), getattr(caching, "Cache", None)
     bases = [named(n) for n in ("UserProvidedCacheLocator", "InTreeCacheLocator", "UserWideCacheLocator")]
-    if impl is None or not isinstance(getattr(impl, "_locator_classes", None), list) or None in bases:
+    if (impl is None or not isinstance(getattr(impl, "_locator_classes", None), list) or None in bases
+            or not all(callable(getattr(cache, m, None)) for m in ("load_overload", "save_overload"))):
         return False
     root = package.resolve()
     if any(getattr(cls, "package_root", None) == root for cls in impl._locator_classes):
@@ -111,4 +120,54 @@ def stamp_kernel_caches(package: Path = PACKAGE) -> bool:
         return PackageLocator
 
     impl._locator_classes[:0] = [within(base) for base in bases]
+    if not getattr(cache.load_overload, "guarded", False):
+        cache.load_overload = _guarded_load(cache.load_overload)
+        cache.save_overload = _guarded_save(cache.save_overload)
     return True
+
+
+def _ours(cache) -> bool:
+    """Whether a Numba function cache belongs to a package `guard_kernel_caches` looks after."""
+    return getattr(getattr(getattr(cache, "_impl", None), "locator", None), "package_root", None) is not None
+
+
+def _index_path(cache) -> str:
+    return str(getattr(getattr(cache, "_cache_file", None), "_index_path", "?"))
+
+
+def _guarded_load(load):
+    """Numba's `Cache.load_overload`, a cache file of the package's kernels that cannot be read removed (its
+    index; the data files it named are overwritten as the kernel is saved again) and the kernel compiled again."""
+
+    def load_overload(self, sig, target_context):
+        if not _ours(self):
+            return load(self, sig, target_context)
+        try:
+            return load(self, sig, target_context)
+        except Exception as e:  # whatever unpickling a damaged file raises
+            index = _index_path(self)
+            print(f"facerec3d: compiled-kernel cache {index}: unreadable ({type(e).__name__}: {e}); compiling "
+                  f"again", file=sys.stderr, flush=True)
+            with suppress(OSError):
+                os.remove(index)
+            return None
+
+    load_overload.guarded = True
+    return load_overload
+
+
+def _guarded_save(save):
+    """Numba's `Cache.save_overload`: for the package's kernels, a cache that cannot be written is said, not
+    raised (the kernel stays compiled in this process)."""
+
+    def save_overload(self, sig, data):
+        if not _ours(self):
+            return save(self, sig, data)
+        try:
+            return save(self, sig, data)
+        except Exception as e:  # a full or read-only disk, or an index that cannot be read
+            print(f"facerec3d: compiled-kernel cache {_index_path(self)}: not saved ({type(e).__name__}: {e})",
+                  file=sys.stderr, flush=True)
+
+    save_overload.guarded = True
+    return save_overload

@@ -600,7 +600,7 @@ def test_two_enrolments_at_once_enrol_everything_once(data, tmp_path):
 
 
 def test_a_cached_kernel_is_compiled_again_when_a_kernel_it_calls_changes_in_another_module(tmp_path):
-    """Numba keys a cached kernel on its own module only; `jit.stamp_kernel_caches` makes it stale when any module
+    """Numba keys a cached kernel on its own module only; `jit.guard_kernel_caches` makes it stale when any module
     of the package that defines kernels changes (a `git pull` that touched `geometry/ball.py` alone)."""
     package = tmp_path / "kpkg"
     package.mkdir()
@@ -609,8 +609,8 @@ def test_a_cached_kernel_is_compiled_again_when_a_kernel_it_calls_changes_in_ano
                                   "def f(x):\n    return g(x) + 1.0\n")
     callee = "from numba import njit\n\n\n@njit(cache=True)\ndef g(x):\n    return x * {}\n"
     script = ("import sys\nfrom pathlib import Path\nsys.path.insert(0, sys.argv[1])\n"
-              "from facerec3d.jit import stamp_kernel_caches\n"
-              "assert stamp_kernel_caches(Path(sys.argv[1]) / 'kpkg')\n"
+              "from facerec3d.jit import guard_kernel_caches\n"
+              "assert guard_kernel_caches(Path(sys.argv[1]) / 'kpkg')\n"
               "from kpkg.a import f\nprint(f(2.0))\n")
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}  # the kernels' own __pycache__
     run = lambda: subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True, text=True,
@@ -621,3 +621,32 @@ def test_a_cached_kernel_is_compiled_again_when_a_kernel_it_calls_changes_in_ano
     assert list((package / "__pycache__").glob("a.f-*.nbi"))
     (package / "b.py").write_text(callee.format("100.0"))  # a.py untouched
     assert run() == "201.0"
+
+
+def test_a_damaged_compiled_kernel_cache_is_said_in_one_line_and_compiled_again(tmp_path):
+    """Numba stops with a traceback from `pickle` on a truncated cache file of a kernel; facerec3d's kernels are
+    compiled again instead, with one line naming the cache, and a cache that cannot be written is said, not
+    raised."""
+    script = ("import numpy as np\nfrom facerec3d.geometry.ball import within_ball\n"
+              "print(int(within_ball(np.arange(12.0).reshape(4, 3), np.zeros(3), 8.0).sum()))\n")
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    run = lambda: subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env)
+    first = run()
+    assert first.returncode == 0 and first.stdout.split() == ["2"], first.stderr
+    files = list((tmp_path / "numba").rglob("ball._within-*.nb[ic]"))
+    assert {f.suffix for f in files} == {".nbi", ".nbc"}
+    for f in files:  # truncated, as a full disk or a killed copy leaves them
+        f.write_bytes(f.read_bytes()[:20])
+    damaged = run()
+    assert damaged.returncode == 0 and damaged.stdout.split() == ["2"], damaged.stderr
+    lines = damaged.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in damaged.stderr, damaged.stderr
+    assert "compiled-kernel cache" in lines[0] and "ball._within-" in lines[0] and "unreadable" in lines[0]
+    again = run()  # the cache was written anew
+    assert again.returncode == 0 and again.stdout.split() == ["2"] and again.stderr == ""
+    index = next((tmp_path / "numba").rglob("ball._within-*.nbi"))
+    index.unlink()
+    index.mkdir()  # neither readable nor writable as a file
+    blocked = run()
+    assert blocked.returncode == 0 and blocked.stdout.split() == ["2"], blocked.stderr
+    assert "Traceback" not in blocked.stderr and "unreadable" in blocked.stderr and "not saved" in blocked.stderr
