@@ -1,5 +1,6 @@
 """Depth frames of depth cameras: 16-bit PNG / TIFF / .npy with pinhole intrinsics, read like any other scan."""
 
+import csv
 import json
 
 import numpy as np
@@ -82,6 +83,8 @@ BAD_INTRINSICS = [
     ('{"fx": -1, "fy": 365, "cx": 59, "cy": 74}', "positive"),
     ('{"fx": 365, "fy": 365, "cx": 59, "cy": 74, "depth_unit_mm": 0}', "depth unit"),
     ('{"fx": 365, "fy": 365, "cx": 59, "cy": 74, "width": 7, "height": 9}', "intrinsics are for 9x7"),
+    ('{"fx": 365, "fy": 365, "cx": 59, "cy": 74, "encoding": "depth32"}', "'encoding' must be one of plain, depth16"),
+    ('{"fx": 365, "fy": 365, "cx": 59, "cy": 74, "encoding": "depth16", "min_confidence": 1.5}', "'min_confidence'"),
 ]
 
 
@@ -151,3 +154,40 @@ def test_manifest_of_depth_frames_with_a_pose_column_gives_pose_subsets(tmp_path
     sp = split(ds, "roles")
     assert {k: len(v) for k, v in sp.subsets.items()} == {"pose:front": 2, "pose:left": 2, "pose:up": 2}
     assert load_scan(ds.records[1].path).grid_shape == (20, 20)
+
+
+def test_android_depth16_frames_keep_the_range_bits_and_leave_out_what_the_sensor_is_unsure_of(tmp_path):
+    """Android's DEPTH16 (phones' time-of-flight cameras): 13 bits of range in mm under 3 bits of confidence (0:
+    100 %, 1: 0 %, k: (k - 1)/7). Read as plain depth, each pixel would lie up to 57 m away; decoded, the frame is
+    the plain one less the pixels below `min_confidence`, and a face in it is found where the generator put it."""
+    from facerec3d.datasets.synthetic import SENSOR_PROFILES, DatasetConfig, write_dataset
+    from facerec3d.preprocess import Preprocessor, landmarks_in_input_frame
+
+    plain_root = write_dataset(tmp_path / "plain", DatasetConfig(subjects=1, scans=1,
+                                                                scanner=SENSOR_PROFILES["kinect-v2"]), fmt="png")
+    plain_root = plain_root.parent  # write_dataset gives its manifest
+    row = next(csv.DictReader(open(plain_root / "manifest.csv")))
+    plain = np.asarray(Image.open(plain_root / row["path"])).astype(np.uint16)
+    assert plain.max() < 8192 and (plain > 0).sum() > 5000  # millimetres, as DEPTH16 holds them; a head and torso
+    rng = np.random.default_rng(3)
+    code = rng.choice(np.array([0, 1, 2, 3, 4, 5, 6, 7], np.uint16), size=plain.shape,
+                      p=[0.4, 0.1, 0.1, 0.1, 0.1, 0.1, 0.05, 0.05])
+    frame16 = tmp_path / "phone" / "f.png"
+    frame16.parent.mkdir()
+    Image.fromarray(np.where(plain > 0, (code << 13) | plain, 0).astype(np.uint16)).save(frame16)
+    intrinsics = json.loads((plain_root / "intrinsics.json").read_text())
+    reference = load_scan(plain_root / row["path"])
+    for min_confidence, kept in ((None, code != 1), (0.5, (code == 0) | (code >= 5)), (0.0, np.ones_like(code, bool))):
+        given = {} if min_confidence is None else {"min_confidence": min_confidence}
+        (frame16.parent / "intrinsics.json").write_text(json.dumps(dict(intrinsics, encoding="depth16", **given)))
+        scan = load_scan(frame16)
+        assert scan.grid_shape == reference.grid_shape
+        seen = reference.index_image()
+        np.testing.assert_array_equal(scan.index_image() >= 0, (seen >= 0) & kept)
+        np.testing.assert_array_equal(scan.points, reference.points[seen[(seen >= 0) & kept]])
+    (frame16.parent / "intrinsics.json").write_text(json.dumps(dict(intrinsics, encoding="depth16")))
+    face = Preprocessor()(load_scan(frame16))  # a tenth of the face's pixels left out (0 % confidence)
+    truth = np.array([float(row[f"nose_tip_{a}"]) for a in "xyz"])
+    assert np.linalg.norm(landmarks_in_input_frame(face)["nose_tip"] - truth) <= 10.0
+    (frame16.parent / "intrinsics.json").write_text(json.dumps(intrinsics))  # the same file read as plain depth
+    assert np.median(-load_scan(frame16).points[:, 2]) > 8192.0

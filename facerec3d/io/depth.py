@@ -17,7 +17,13 @@ depth frame and the equivalent `.abs` file give the same points.
 
 `intrinsics.json` holds `fx, fy, cx, cy` (pixels) and optionally
 `depth_unit_mm` (or `depth_scale_m`, metres per unit), `invalid`, `width`,
-`height` (checked against the image when given). It is looked for beside the
+`height` (checked against the image when given), and `encoding`: "plain" (the
+default: each pixel is depth) or "depth16", Android's `ImageFormat.DEPTH16`
+(phones' time-of-flight cameras through Camera2): the 13 low bits of each
+16-bit pixel are the range in mm, the 3 high bits its confidence (0: 100 %,
+1: 0 %, k: (k − 1)/7), taken as Z-depth like any other frame's; pixels below
+`min_confidence` (default 1/7: those the sensor gives no confidence) are left
+out. It is looked for beside the
 frame and in up to `INTRINSICS_SEARCH_DEPTH` parent folders, so a dataset with
 one camera needs one file at its root.
 """
@@ -37,6 +43,7 @@ from facerec3d.scan import FaceScan
 
 INTRINSICS_NAME = "intrinsics.json"
 INTRINSICS_SEARCH_DEPTH = 3  # parent folders searched for intrinsics.json, beyond the frame's own
+ENCODINGS = ("plain", "depth16")  # how a pixel holds depth (`Intrinsics.encoding`)
 
 
 @dataclass(frozen=True)
@@ -51,6 +58,8 @@ class Intrinsics:
     invalid: int = 0  # stored value meaning "no measurement"
     width: int | None = None  # image size the intrinsics belong to (checked when given)
     height: int | None = None
+    encoding: str = "plain"  # "plain": a pixel is depth; "depth16": Android's DEPTH16 (range and confidence bits)
+    min_confidence: float = 1 / 7  # depth16: pixels the sensor is less confident of are left out (0 %: none)
 
     @classmethod
     def from_dict(cls, data: dict, source: str | Path = "intrinsics") -> "Intrinsics":
@@ -81,6 +90,14 @@ class Intrinsics:
                 if v != int(v) or v <= 0:
                     raise ScanFormatError(source, f"intrinsics: {name!r} must be a positive integer")
                 values[name] = int(v)
+        if "encoding" in data:
+            if data["encoding"] not in ENCODINGS:
+                raise ScanFormatError(source, f"intrinsics: 'encoding' must be one of {', '.join(ENCODINGS)}")
+            values["encoding"] = data["encoding"]
+        if "min_confidence" in data:
+            values["min_confidence"] = _number(data["min_confidence"], source, "min_confidence")
+            if not 0.0 <= values["min_confidence"] <= 1.0:
+                raise ScanFormatError(source, "intrinsics: 'min_confidence' must lie in [0, 1]")
         return cls(**values)
 
     @classmethod
@@ -99,7 +116,9 @@ class Intrinsics:
         return cls.from_dict(data, path)
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps({k: v for k, v in asdict(self).items() if v is not None}, indent=1))
+        plain = {"encoding": "plain", "min_confidence": 1 / 7}  # the defaults, left out
+        Path(path).write_text(json.dumps({k: v for k, v in asdict(self).items()
+                                          if v is not None and plain.get(k, not v) != v}, indent=1))
 
     def pixel_pitch_mm(self, depth_mm: float) -> float:
         """Size of one pixel on a surface `depth_mm` away, facing the camera (mm)."""
@@ -200,10 +219,23 @@ def read_depth_image(path: str | Path, intrinsics: Intrinsics | str | Path | Non
             intrinsics = Intrinsics.load(intrinsics)
         except ScanFormatError as e:  # name the frame and the intrinsics file it was read with
             raise ScanFormatError(path, f"{intrinsics}: {e.reason}") from None
+    if intrinsics.encoding == "depth16":
+        units = depth16_range(units, intrinsics.min_confidence, path)
     depth = np.where(units == intrinsics.invalid, np.nan, units.astype(np.float64) * intrinsics.depth_unit_mm)
     scan = frame_to_scan(depth, intrinsics, path)
     extra = {"pixel_focal": math.sqrt(intrinsics.fx * intrinsics.fy), "depth_unit_mm": intrinsics.depth_unit_mm}
     return scan.replace(meta=scan.meta.replace(extra=extra))
+
+
+def depth16_range(pixels: np.ndarray, min_confidence: float = 1 / 7, path: str | Path = "depth") -> np.ndarray:
+    """The range (mm; 0 = none) of Android DEPTH16 pixels: their 13 low bits, 0 where the confidence in their 3 high
+    bits (0: 100 %, 1: 0 %, k: (k − 1)/7) is below `min_confidence`."""
+    if pixels.dtype.kind not in "iu" or pixels.size and (pixels.min() < 0 or pixels.max() > 0xFFFF):
+        raise ScanFormatError(path, "a DEPTH16 frame holds 16-bit integers (encoding \"depth16\" in the intrinsics)")
+    pixels = pixels.astype(np.uint16)
+    code = pixels >> 13
+    confidence = np.where(code == 0, 1.0, (code.astype(np.float64) - 1.0) / 7.0)
+    return np.where(confidence >= min_confidence, pixels & 0x1FFF, 0).astype(np.uint16)
 
 
 def write_depth_image(path: str | Path, depth_mm: np.ndarray, intrinsics: Intrinsics) -> None:
