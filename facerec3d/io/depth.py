@@ -116,9 +116,9 @@ class Intrinsics:
         return cls.from_dict(data, path)
 
     def save(self, path: str | Path) -> None:
-        plain = {"encoding": "plain", "min_confidence": 1 / 7}  # the defaults, left out
+        at_default = lambda k, v: k in ("encoding", "min_confidence") and v == getattr(Intrinsics, k)  # left out
         Path(path).write_text(json.dumps({k: v for k, v in asdict(self).items()
-                                          if v is not None and plain.get(k, not v) != v}, indent=1))
+                                          if v is not None and not at_default(k, v)}, indent=1))
 
     def pixel_pitch_mm(self, depth_mm: float) -> float:
         """Size of one pixel on a surface `depth_mm` away, facing the camera (mm)."""
