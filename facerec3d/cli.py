@@ -925,6 +925,50 @@ def gallery_rekey(store, new_key_file):
                f"{KEY_FILE_ENV}={new_key_file}")
 
 
+@main.command("train-nose")
+@click.argument("out", type=click.Path(dir_okay=False))
+@click.option("--samples", default=7000, show_default=True, type=click.IntRange(min=100),
+              help="Synthetic scans (any sensor profile, pose, occluder) to learn from.")
+@click.option("--epochs", default=10, show_default=True, type=click.IntRange(min=1))
+@click.option("--seed", default=0, show_default=True, help="Seed of the network's initialisation and batches.")
+@click.option("--data-seed", default=1, show_default=True, help="Seed of the synthetic scans.")
+@click.option("--trainset", type=click.Path(dir_okay=False),
+              help="File keeping the training samples, reused when it holds as many [default: OUT with "
+                   ".trainset.npz].")
+@click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", type=click.IntRange(min=1),
+              help="Processes making the samples; torch trains on as many threads.")
+@friendly
+def train_nose(out, samples, epochs, seed, data_seed, trainset, jobs):
+    """Train the nose proposer ([detect] proposer, docs/methods.md) on synthetic scans and write OUT (ONNX) and its
+    card (OUT with .json). Needs the [train] extra (PyTorch); using it never does."""
+    import numpy as np
+
+    from facerec3d.training.nose import export, train_nose as train, training_samples
+    from facerec3d.workers import Workers
+
+    out = Path(out)
+    keep = Path(trainset or out.with_suffix(".trainset.npz"))
+    data = None
+    if keep.is_file():
+        try:
+            with np.load(keep, allow_pickle=False) as d:
+                if int(d["data_seed"]) == data_seed and int(d["requested"]) == samples:
+                    data = d["maps"], d["noses"]
+        except (OSError, ValueError, KeyError) as e:
+            click.echo(f"{keep}: not a training-sample file ({e}); making the samples again", err=True)
+    if data is None:
+        with Workers.create(jobs) as workers:
+            data = training_samples(samples, data_seed, workers)
+        with open(keep, "wb") as f:
+            np.savez(f, maps=data[0], noses=data[1], data_seed=data_seed, requested=samples)
+    click.echo(f"training samples: {len(data[0])} of {samples} scans ({keep})")
+    net, figures = train(data[0].astype(np.float32), data[1], epochs=epochs, seed=seed, threads=jobs,
+                         log=lambda line: click.echo(line))
+    path = export(net, out, {"command": " ".join(["facerec3d", *sys.argv[1:]]), "samples": int(len(data[0])),
+                             "data_seed": data_seed, "seed": seed, "epochs": epochs, **figures})
+    click.echo(f"model: {path} (card {path.with_suffix('.json')})")
+
+
 @main.command("train-embedding")
 @click.argument("out", type=click.Path(dir_okay=False))
 @click.option("--identities", default=1200, show_default=True, type=click.IntRange(min=2),

@@ -220,6 +220,10 @@ def test_enrolling_through_the_service_calibrates_its_gallery_as_a_local_calibra
     for fmr, theirs in ((0.01, remote), (0.05, given)):
         with GalleryStore(copy) as store, Engine.create(1) as engine:
             local = calibrate(store, records, fmr=fmr, engine=engine)
-        same = ("value", "rule", "fmr", "impostor_pairs", "genuine_pairs", "tar", "eer", "scans", "entries")
+        same = ("rule", "fmr", "impostor_pairs", "genuine_pairs", "tar", "eer", "scans", "entries")
         assert {k: local[k] for k in same} == {k: theirs[k] for k in same}
+        # the same threshold; to the bit until 2026-12-05, since then (the nose proposer's detections) 2e-8 apart at
+        # fmr 0.05: the service and the local run sum the same scores in another order (faces and embeddings are
+        # the same to the bit across processes and batch sizes); any other face would move it by far more
+        assert local["value"] == pytest.approx(theirs["value"], rel=1e-7, abs=0)
         assert local["genuine_pairs"] == 9 * 2  # each scan's own entry left out (by its bytes: no file behind it)

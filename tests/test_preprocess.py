@@ -546,8 +546,8 @@ def test_finalists_ranked_after_a_few_iterations_keep_the_placement_that_fitting
     seen = []  # the scans the pipeline detects faces on (gridded, despiked, smoothed)
     monkeypatch.setattr(pipeline, "detect_face",
                         lambda scan, config: seen.append(scan) or detect.detect_face(scan, config))
-    screened = replace(cfg.detect, screen_iterations=fast.screen_iterations, screened=fast.screened)
-    every = cfg.detect
+    every = replace(cfg.detect, proposer="")  # the hand-made candidates: 8 finalists
+    screened = replace(every, screen_iterations=fast.screen_iterations, screened=fast.screened)
     assert every.screen_iterations == 0
     assert 0 < screened.screen_iterations < screened.model.iterations and 0 < screened.screened < screened.finalists
     runs = []

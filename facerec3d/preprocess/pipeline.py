@@ -49,7 +49,7 @@ import numpy as np
 from facerec3d.config import from_dict, read_settings
 from facerec3d.preprocess.denoise import (DenoiseConfig, DequantiseConfig, SmoothConfig, denoise, dequantise,
                                          smooth_range_image)
-from facerec3d.preprocess.detect import DetectConfig, check_points, crop_sphere, detect_face
+from facerec3d.preprocess.detect import DetectConfig, check_points, crop_sphere, detect_face, proposer
 from facerec3d.preprocess.holes import HoleConfig, fill_holes
 from facerec3d.preprocess.orient import OrientConfig, orient
 from facerec3d.preprocess.resample import ResampleConfig, gridify, resample
@@ -97,8 +97,12 @@ class PreprocessConfig:
         return dataclasses.asdict(self)
 
     def fingerprint(self) -> str:
-        """A stable text of the whole configuration (cache keys, gallery stores)."""
-        return json.dumps(self.to_dict(), sort_keys=True)
+        """A stable text of the whole configuration (cache keys, gallery stores), with the SHA-256 of the nose
+        proposer's model file when there is one (a new model makes new faces)."""
+        data = self.to_dict()
+        if self.detect.proposer:
+            data["detect"]["proposer_sha256"] = proposer(self.detect.proposer).sha256
+        return json.dumps(data, sort_keys=True)
 
     def digest(self) -> str:
         """A short hash of `fingerprint()` (16 hex digits): recorded in every face `Preprocessor` makes
@@ -107,8 +111,19 @@ class PreprocessConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], source: str | Path | None = None) -> "PreprocessConfig":
-        """Settings checked field by field (config.from_dict); errors name `source`, the file they came from."""
-        return from_dict(cls, data, source)
+        """Settings checked field by field (config.from_dict); errors name `source`, the file they came from. A
+        `fingerprint()` reads back too: its nose proposer's SHA-256 must be that of the model the settings name
+        now."""
+        detect = data.get("detect")
+        made_with = detect.get("proposer_sha256") if isinstance(detect, dict) else None
+        if made_with is not None:
+            data = {**data, "detect": {k: v for k, v in detect.items() if k != "proposer_sha256"}}
+        config = from_dict(cls, data, source)
+        if made_with is not None and config.detect.proposer and made_with != proposer(config.detect.proposer).sha256:
+            raise ValueError(f"{source}: made with another nose proposer model (SHA-256 {str(made_with)[:12]}..., "
+                             f"{proposer(config.detect.proposer).path}'s is "
+                             f"{proposer(config.detect.proposer).sha256[:12]}...)")
+        return config
 
     @classmethod
     def load(cls, path: str | Path) -> "PreprocessConfig":

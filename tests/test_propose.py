@@ -1,0 +1,109 @@
+"""The learned nose proposer (preprocess.propose) and the detector driven by it, against the generator's truth."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from facerec3d.datasets.synthetic import SENSOR_PROFILES, identity_profile, quick_scan
+from facerec3d.errors import FaceRec3DError
+from facerec3d.preprocess import PreprocessConfig
+from facerec3d.preprocess.detect import DetectConfig, _subsample, detect_face, proposer
+from facerec3d.preprocess.propose import SHIPPED_PROPOSER, NoseProposer, height_map, peaks
+
+# (sensor, yaw, pitch, occluder): every sensor profile, faces turned and tilted, a hand and glasses
+CASES = [("frgc", 0, 0, None), ("frgc", -35, 10, "hand"), ("kinect-v2", 20, -15, None),
+         ("kinect-v2", 60, 0, None), ("kinect-v2-8bit", -25, 5, "glasses"), ("kinect-v2-8bit", 0, 20, None),
+         ("realsense", 40, 0, None), ("realsense", -10, -10, "fringe")]
+
+
+def detector_view(sensor, yaw, pitch, occluder, subject):
+    """A synthetic scan (outside the model's span when occluded) as the detector sees it, and its true nose."""
+    from facerec3d.training.nose import detector_view as view  # noqa: PLC0415 - needs no torch until training
+
+    ident = identity_profile("outside-model" if occluder else "model")
+    syn = quick_scan(subject, "smile", yaw=yaw, pitch=pitch, seed=subject, scanner=SENSOR_PROFILES[sensor],
+                     identity=ident, occluder=occluder)
+    return view(syn.scan)[0], syn.landmarks["nose_tip"]
+
+
+def test_a_height_map_keeps_the_surface_nearest_the_camera_in_each_cell():
+    pts = np.array([[0.0, 0.0, -100.0], [1.0, 1.0, -90.0], [12.0, -3.0, -50.0], [2.0, -8.0, -120.0]])
+    hm = height_map(pts, cell_mm=5.0)
+    rc = np.floor(hm.cell_of(pts[:, :2])).astype(int)
+    assert hm.z[rc[0, 0], rc[0, 1]] == -90.0  # the first two share a cell: the nearer one stays
+    assert hm.z[rc[2, 0], rc[2, 1]] == -50.0
+    assert np.isfinite(hm.z).sum() == 3
+    # a cell's centre lies within half a cell of every point in it
+    assert np.abs(hm.centre(np.floor(hm.cell_of(pts[:, :2]))) - pts[:, :2]).max() <= 2.5
+
+
+def test_peaks_are_distinct_local_maxima_best_first():
+    s = np.zeros((20, 20))
+    s[3, 4], s[3, 6], s[15, 15] = 5.0, 4.0, 3.0  # (3, 6) lies within (3, 4)'s window
+    assert peaks(s, 5, 5).tolist()[:2] == [[3, 4], [15, 15]]  # (3, 6) is within (3, 4)'s 5 x 5 window ...
+    assert peaks(s, 5, 3).tolist()[:3] == [[3, 4], [3, 6], [15, 15]]  # ... not within its 3 x 3 one
+
+
+@pytest.mark.parametrize("case", range(len(CASES)))
+def test_the_shipped_proposer_puts_a_proposal_on_the_true_nose(case):
+    scan, nose = detector_view(*CASES[case], subject=300 + case)
+    sub, _ = _subsample(scan, DetectConfig().sample_mm)
+    found = sub.points[NoseProposer().propose(sub.points, 3)]
+    assert len(found) >= 1
+    assert np.linalg.norm(found - nose, axis=1).min() <= 12.0, CASES[case]
+
+
+def test_the_detector_driven_by_the_proposer_finds_the_nose_of_every_sensor():
+    config = replace(PreprocessConfig().detect, proposer="shipped")
+    errors = []
+    for case, c in enumerate(CASES):
+        scan, nose = detector_view(*c, subject=400 + case)
+        errors.append(np.linalg.norm(detect_face(scan, config).nose_tip - nose))
+    # the hand-made search of the defaults on these scans: 0.7 2.7 3.8 1.7 6.3 5.7 2.6 57.8 mm (the fringe over a
+    # RealSense face misleads both); driven by the proposer 0.8 12.2 3.8 1.7 6.7 5.6 2.8 57.8 (2026-12-05)
+    assert sum(e <= 10.0 for e in errors) >= 6 and np.median(errors) <= 6.0, np.round(errors, 1)
+
+
+def test_a_damaged_proposer_model_is_one_clear_error(tmp_path):
+    bad = tmp_path / "nose.onnx"
+    bad.write_bytes(b"not a model")
+    scan, _ = detector_view("kinect-v2", 0, 0, None, subject=5)
+    with pytest.raises(FaceRec3DError, match="nose.onnx: not a usable ONNX nose proposer"):
+        detect_face(scan, DetectConfig(proposer=str(bad)))
+    with pytest.raises(ValueError, match="no such file"):
+        DetectConfig(proposer=str(tmp_path / "missing.onnx"))
+    assert SHIPPED_PROPOSER.is_file() and proposer("shipped").path == SHIPPED_PROPOSER
+
+
+def test_nose_samples_put_the_true_nose_in_the_cell_they_name():
+    from facerec3d.training.nose import make_samples, sample_specs
+
+    draws = sample_specs(6, seed=7)
+    maps, noses = make_samples(draws)
+    assert maps.shape == (6, 160, 160) and noses.shape == (6, 3)
+    for z, (r, c, nose_z), (_, _, spec) in zip(maps.astype(float), noses, draws):
+        near = z[int(r) - 2:int(r) + 3, int(c) - 2:int(c) + 3]  # the nose's cell and two around it (10 mm)
+        assert np.isfinite(near).any()
+        # the scan's surface there is the nose's, or an occluder's in front of it
+        assert np.nanmin(np.abs(near - nose_z)) <= 3.0 or (spec.occluder and np.nanmax(near) > nose_z + 3.0)
+
+
+def test_a_tiny_proposer_trained_here_runs_in_onnxruntime_as_in_torch(tmp_path):
+    """Needs the [train] extra (pip install -e '.[train]'); CI without torch skips only this test."""
+    torch = pytest.importorskip("torch")
+    from facerec3d.preprocess.propose import HeightMap, proposer_input
+    from facerec3d.training.nose import export, make_samples, sample_specs, train_nose
+
+    maps, noses = make_samples(sample_specs(24, seed=3))
+    net, figures = train_nose(maps.astype(np.float32), noses, epochs=6, batch=6, size=64, validation=4,
+                              threads=1, log=lambda line: None)
+    history = figures["history"]
+    assert history[-1]["loss"] < history[0]["loss"]
+    path = export(net, tmp_path / "tiny.onnx", figures)
+    hm = HeightMap(maps[0].astype(float), 0.0, 0.0, 5.0)
+    onnx_scores = NoseProposer(path).scores(hm)
+    with torch.no_grad():
+        torch_scores = net(torch.from_numpy(proposer_input(hm)[None]))[0, 0].numpy()
+    assert onnx_scores.shape == torch_scores.shape == (80, 80)
+    assert np.allclose(onnx_scores, torch_scores, atol=1e-3)
