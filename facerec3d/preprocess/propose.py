@@ -152,8 +152,8 @@ class NoseProposer:
 
     def propose(self, points: np.ndarray, count: int, separation_mm: float = 25.0) -> np.ndarray:
         """Indices of up to `count` points (N, 3) at the best distinct peaks of the nose score: under each peak's
-        10 mm cell, the point nearest the camera (ties: nearest the peak, then by x and y, so the choice does not
-        depend on the points' order); where the cell is empty, the point nearest it within two cells."""
+        10 mm cell, the point nearest the camera (the first of equals); where the cell is empty, the point nearest
+        it within two cells."""
         hm = height_map(points)
         score = self.scores(hm)
         sep = max(3, int(round(separation_mm / (hm.cell * STRIDE))) | 1)
@@ -162,10 +162,8 @@ class NoseProposer:
         for c in xy:
             d = np.abs(points[:, :2] - c).max(axis=1)
             near = np.flatnonzero(d <= hm.cell * STRIDE / 2)
-            if len(d) and d.min() <= 2 * hm.cell * STRIDE:  # (a peak just off the data: a nose in profile)
-                if not len(near):
-                    near = np.flatnonzero(d == d.min())
-                # the nearest to the camera, then to the peak, then by x and y: whatever order the points come in
-                p = points[near]
-                out.append(int(near[np.lexsort((p[:, 1], p[:, 0], np.hypot(*(p[:, :2] - c).T), -p[:, 2]))[0]]))
+            if len(near):
+                out.append(int(near[np.argmax(points[near, 2])]))
+            elif d.min() <= 2 * hm.cell * STRIDE:  # a peak just off the data (a nose in profile): its nearest point
+                out.append(int(np.argmin(d)))
         return np.array(out, dtype=np.int64)
