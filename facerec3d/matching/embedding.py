@@ -36,6 +36,7 @@ import numpy as np
 from facerec3d.errors import FaceRec3DError, InputError
 from facerec3d.matching.base import Matcher, Template
 from facerec3d.matching.depthmap import fill_nearest
+from facerec3d.models import onnx_session
 from facerec3d.preprocess.resample import ResampleConfig, depth_map
 from facerec3d.scan import MIRRORED, FaceScan
 
@@ -149,17 +150,7 @@ class EmbeddingModel:
     @property
     def session(self) -> Any:
         if self._session is None:
-            import onnxruntime as ort
-
-            options = ort.SessionOptions()
-            options.intra_op_num_threads = self.threads
-            options.inter_op_num_threads = 1
-            options.log_severity_level = 3
-            try:
-                self._session = ort.InferenceSession(str(self.path), options, providers=["CPUExecutionProvider"])
-            except Exception as e:  # onnxruntime raises its own exception types for unreadable models
-                raise FaceRec3DError(f"{self.path}: not a usable ONNX embedding model ({str(e).splitlines()[0]})") \
-                    from None
+            self._session = onnx_session(self.path, "embedding model", self.threads)
             shape = self._session.get_inputs()[0].shape
             wanted = [N_CHANNELS, self.recipe.size, self.recipe.size]
             if len(shape) != 4 or [d if isinstance(d, int) else None for d in shape[1:]] != wanted:

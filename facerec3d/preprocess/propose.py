@@ -26,6 +26,7 @@ import numpy as np
 from scipy import ndimage
 
 from facerec3d.errors import FaceRec3DError
+from facerec3d.models import onnx_session
 
 CELL_MM = 5.0  # the height map's cell (mm): a nose tip ~6 cells wide
 LOCAL_MM = 20.0  # σ of the neighbourhood a cell's height is measured against (mm)
@@ -125,17 +126,7 @@ class NoseProposer:
     @property
     def session(self) -> Any:
         if self._session is None:
-            import onnxruntime as ort
-
-            options = ort.SessionOptions()
-            options.intra_op_num_threads = 1
-            options.inter_op_num_threads = 1
-            options.log_severity_level = 3
-            try:
-                self._session = ort.InferenceSession(str(self.path), options, providers=["CPUExecutionProvider"])
-            except Exception as e:  # onnxruntime raises its own exception types for unreadable models
-                raise FaceRec3DError(f"{self.path}: not a usable ONNX nose proposer ({str(e).splitlines()[0]})") \
-                    from None
+            self._session = onnx_session(self.path, "nose proposer")
         return self._session
 
     def scores(self, hm: HeightMap) -> np.ndarray:
