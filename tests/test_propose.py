@@ -107,3 +107,21 @@ def test_a_tiny_proposer_trained_here_runs_in_onnxruntime_as_in_torch(tmp_path):
         torch_scores = net(torch.from_numpy(proposer_input(hm)[None]))[0, 0].numpy()
     assert onnx_scores.shape == torch_scores.shape == (80, 80)
     assert np.allclose(onnx_scores, torch_scores, atol=1e-3)
+
+
+def test_where_no_proposed_placement_is_a_face_the_hand_made_search_finds_it(monkeypatch):
+    from facerec3d.errors import FailureToAcquire
+    from facerec3d.preprocess import detect
+
+    scan, nose = detector_view("kinect-v2", 10, 0, None, subject=77)
+    sub, _ = _subsample(scan, DetectConfig().sample_mm)
+    lowest = int(np.argmin(sub.points[:, 1]))  # the bottom of the torso: no face there
+    monkeypatch.setattr(NoseProposer, "propose", lambda self, points, count, sep=25.0: np.array([lowest]))
+    config = DetectConfig(proposer="shipped")
+    placed = None
+    try:
+        placed = detect._detect_face(scan, config).nose_tip
+    except FailureToAcquire:
+        pass
+    assert placed is None or np.linalg.norm(placed - nose) > 25.0  # the proposal alone does not find the face ...
+    assert np.linalg.norm(detect_face(scan, config).nose_tip - nose) <= 10.0  # ... the search from the hand-made does
