@@ -943,7 +943,8 @@ def train_nose(out, samples, epochs, seed, data_seed, trainset, jobs):
     card (OUT with .json). Needs the [train] extra (PyTorch); using it never does."""
     import numpy as np
 
-    from facerec3d.training.nose import export, train_nose as train, training_samples
+    from facerec3d.training.nose import export, train_nose as train
+    from facerec3d.training.nose_data import training_samples
     from facerec3d.workers import Workers
 
     out = Path(out)

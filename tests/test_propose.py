@@ -19,7 +19,7 @@ CASES = [("frgc", 0, 0, None), ("frgc", -35, 10, "hand"), ("kinect-v2", 20, -15,
 
 def detector_view(sensor, yaw, pitch, occluder, subject):
     """A synthetic scan (outside the model's span when occluded) as the detector sees it, and its true nose."""
-    from facerec3d.training.nose import detector_view as view  # noqa: PLC0415 - needs no torch until training
+    from facerec3d.training.nose_data import detector_view as view
 
     ident = identity_profile("outside-model" if occluder else "model")
     syn = quick_scan(subject, "smile", yaw=yaw, pitch=pitch, seed=subject, scanner=SENSOR_PROFILES[sensor],
@@ -77,7 +77,7 @@ def test_a_damaged_proposer_model_is_one_clear_error(tmp_path):
 
 
 def test_nose_samples_put_the_true_nose_in_the_cell_they_name():
-    from facerec3d.training.nose import make_samples, sample_specs
+    from facerec3d.training.nose_data import make_samples, sample_specs
 
     draws = sample_specs(6, seed=7)
     maps, noses = make_samples(draws)
@@ -93,7 +93,8 @@ def test_a_tiny_proposer_trained_here_runs_in_onnxruntime_as_in_torch(tmp_path):
     """Needs the [train] extra (pip install -e '.[train]'); CI without torch skips only this test."""
     torch = pytest.importorskip("torch")
     from facerec3d.preprocess.propose import HeightMap, proposer_input
-    from facerec3d.training.nose import export, make_samples, sample_specs, train_nose
+    from facerec3d.training.nose import export, train_nose
+    from facerec3d.training.nose_data import make_samples, sample_specs
 
     maps, noses = make_samples(sample_specs(24, seed=3))
     net, figures = train_nose(maps.astype(np.float32), noses, epochs=6, batch=6, size=64, validation=4,
