@@ -51,7 +51,7 @@ from facerec3d.preprocess.denoise import (DenoiseConfig, DequantiseConfig, Smoot
                                          smooth_range_image)
 from facerec3d.preprocess.detect import DetectConfig, check_points, crop_sphere, detect_face, proposer
 from facerec3d.preprocess.holes import HoleConfig, fill_holes
-from facerec3d.preprocess.orient import OrientConfig, orient
+from facerec3d.preprocess.orient import OrientConfig, Orientation, orient
 from facerec3d.preprocess.resample import ResampleConfig, gridify, resample
 from facerec3d.preprocess.sampling import Sampling, check_surface, measure_sampling
 from facerec3d.preprocess.spikes import SpikeConfig, remove_spikes
@@ -139,16 +139,22 @@ class Preprocessor:
         self.config = config
         self.timings: dict[str, float] = {}
 
-    def __call__(self, scan: FaceScan) -> FaceScan:
+    def detector_view(self, scan: FaceScan) -> tuple[FaceScan, FaceScan, Sampling, Orientation]:
+        """Steps 1–4: the scan as the face detector sees it (oriented, gridded, checked, de-spiked, smoothed), the
+        scan before smoothing (what each pixel measured), its sampling and the orientation applied."""
         cfg = self.config
         check_points(scan)  # the count as read: a sparse cloud has fewer once rasterised (`gridify`)
         scan, view = self._timed("orient", orient, scan, cfg.orient, cfg.detect)
         scan = self._timed("gridify", gridify, scan, cfg.gridify_mm)
         sampling = self._timed("measure", measure_sampling, scan)
         self._timed("measure", check_surface, scan, sampling, cfg.max_noise_pitches)
-        scan = self._timed("spikes", remove_spikes, scan, cfg.spikes, sampling)
-        measured = scan
-        scan = self._timed("smooth", smooth_range_image, scan, *cfg.smooth.sigmas(sampling))
+        measured = self._timed("spikes", remove_spikes, scan, cfg.spikes, sampling)
+        scan = self._timed("smooth", smooth_range_image, measured, *cfg.smooth.sigmas(sampling))
+        return scan, measured, sampling, view
+
+    def __call__(self, scan: FaceScan) -> FaceScan:
+        cfg = self.config
+        scan, measured, sampling, view = self.detector_view(scan)
         found = self._timed("detect", detect_face, scan, cfg.detect)
         scan = self._timed("dequantise", dequantise, scan, measured, sampling.depth_step_mm, found.nose_tip,
                            cfg.crop_radius_mm, cfg.dequantise)

@@ -12,13 +12,8 @@ from scipy import ndimage
 from facerec3d.datasets.synthetic import (EXPRESSIONS, OCCLUDERS, FaceScanner, ScanSpec, identity_profile,
                                           sensor_profile)
 from facerec3d.errors import FaceRec3DError
-from facerec3d.preprocess import PreprocessConfig
-from facerec3d.preprocess.denoise import smooth_range_image
-from facerec3d.preprocess.orient import orient
-from facerec3d.preprocess.propose import STRIDE, HeightMap, height_map, proposer_input
-from facerec3d.preprocess.resample import gridify
-from facerec3d.preprocess.sampling import measure_sampling
-from facerec3d.preprocess.spikes import remove_spikes
+from facerec3d.preprocess import PreprocessConfig, Preprocessor
+from facerec3d.preprocess.propose import CELL_MM, STRIDE, HeightMap, height_map, proposer_input
 from facerec3d.scan import FaceScan
 
 if TYPE_CHECKING:
@@ -31,13 +26,9 @@ FIRST_SUBJECT = 30000  # the samples' faces: subjects no test, benchmark or embe
 
 
 def detector_view(scan: FaceScan, config: PreprocessConfig = PreprocessConfig()) -> tuple[FaceScan, bool]:
-    """A raw scan as the face detector sees it (oriented, gridded, de-spiked and smoothed, as `Preprocessor` does)
-    and whether orienting turned it."""
-    scan, view = orient(scan, config.orient, config.detect)
-    scan = gridify(scan, config.gridify_mm)
-    sampling = measure_sampling(scan)
-    scan = remove_spikes(scan, config.spikes, sampling)
-    return smooth_range_image(scan, *config.smooth.sigmas(sampling)), bool(view.turned or view.roll_deg)
+    """A raw scan as the face detector sees it (`Preprocessor.detector_view`) and whether orienting turned it."""
+    seen, _, _, view = Preprocessor(config).detector_view(scan)
+    return seen, bool(view.turned or view.roll_deg)
 
 
 def sample_specs(n: int, seed: int) -> list[tuple[str, str, ScanSpec]]:
@@ -60,7 +51,7 @@ def sample_specs(n: int, seed: int) -> list[tuple[str, str, ScanSpec]]:
     return out
 
 
-def add_hair(z: np.ndarray, nose: np.ndarray, rng: np.random.Generator, cell_mm: float = 5.0) -> np.ndarray:
+def add_hair(z: np.ndarray, nose: np.ndarray, rng: np.random.Generator, cell_mm: float = CELL_MM) -> np.ndarray:
     """A volume of hair on a height map's head (the generator's heads are bald; real ones seldom are): the surface
     between `inner` and 160 mm from the nose tip and above `level` is raised towards the camera by up to 5–40 mm,
     and the head's outline there grown outwards by up to 40 mm."""
@@ -103,7 +94,7 @@ def augment(z: np.ndarray, nose: np.ndarray, rng: np.random.Generator, size: int
         crop = crop + rng.normal(0, rng.uniform(0, 1.5), crop.shape)
         if rng.random() < 0.5:  # cells lost
             crop[rng.random(crop.shape) < rng.uniform(0, 0.08)] = np.nan
-    return proposer_input(HeightMap(crop, 0.0, 0.0, 5.0)), rc
+    return proposer_input(HeightMap(crop, 0.0, 0.0, CELL_MM)), rc
 
 
 def target(rc: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
