@@ -100,6 +100,45 @@ def test_filled_holes_match_the_true_surface():
     assert np.sqrt(sq / n) < 1.0
 
 
+def test_holes_of_a_face_at_the_frame_edge_are_those_of_the_whole_grid():
+    """Hole filling works on the rows and columns holding the face (a cropped face fills a small part of a Kinect
+    frame's grid): the holes it finds and fills are those of the whole grid, computed here over the whole grid, for a
+    face in the middle of the frame and one cut by each of its edges (where a rim gap opens a cavity to the outside
+    and the frame's edge must stay the image's edge), and a hole opening through a channel at the face's lowest
+    row (sealed only when the window leaves room for the closing beyond the face)."""
+    from facerec3d.preprocess.holes import HoleConfig, hole_mask
+    from facerec3d.scan import FaceScan
+
+    cfg = HoleConfig()
+    s = quick_scan(1, seed=1, noise_mm=0.0, spike_fraction=0.0, n_holes=6, hole_radius_mm=(1.0, 4.0))
+    face = crop_sphere(s.scan, s.landmarks["nose_tip"], 80.0)
+    lo, hi = face.grid.min(axis=0), face.grid.max(axis=0)
+    h, w = face.grid_shape
+    cut = 40  # pixels of the face pushed past an edge
+    placed = {"middle": face}
+    for name, shift in {"top": (-lo[0] - cut, 0), "left": (0, -lo[1] - cut), "bottom": (h - 1 - hi[0] + cut, 0),
+                        "right": (0, w - 1 - hi[1] + cut)}.items():
+        g = face.grid + np.array(shift)
+        inside = (g >= 0).all(axis=1) & (g < [h, w]).all(axis=1)
+        placed[name] = face.subset(inside).replace(grid=g[inside])
+    rr, cc = np.mgrid[:120, :140]  # a ring whose hole opens through a 1-pixel channel at its lowest row: sealed
+    ring = (np.hypot(rr - 60, cc - 70) <= 30) & (np.hypot(rr - 60, cc - 70) > 4) & ~((rr >= 60) & (cc == 70))
+    placed["channel"] = FaceScan.from_range_image(np.stack([cc * 1.0, -rr * 1.0, 0.0 * rr], axis=-1), ring)
+    for name, f in placed.items():
+        _, valid = f.to_range_image()  # the whole grid's holes, as hole filling defines them
+        sealed = ndimage.binary_closing(valid, np.ones((3, 3), bool), iterations=cfg.seal_px, border_value=0)
+        holes = ndimage.binary_fill_holes(sealed | valid) & ~valid
+        labels, n = ndimage.label(holes)
+        area = ndimage.sum_labels(holes, labels, index=np.arange(1, n + 1)) * f.resolution() ** 2
+        whole = np.isin(labels, 1 + np.flatnonzero(area <= cfg.max_area_mm2))
+        assert whole.sum() > 20, name
+        assert np.array_equal(hole_mask(f, cfg), whole), name
+        filled = fill_holes(f, cfg)
+        added = np.zeros_like(whole)
+        added[filled.grid[f.n_points:, 0], filled.grid[f.n_points:, 1]] = True
+        assert np.array_equal(added, whole), name
+
+
 @pytest.mark.parametrize("kind", ["wall", "noise", "empty"])
 def test_faceless_scans_are_failures_to_acquire(kind):
     with pytest.raises(FailureToAcquire):

@@ -230,6 +230,27 @@ def _peaks(height: np.ndarray, sep: int, count: int) -> np.ndarray:
     return np.stack([rows[order], cols[order]], axis=1)
 
 
+def at_rim(sub: FaceScan, spacing: float, points: np.ndarray, config: DetectConfig = DetectConfig()) -> np.ndarray:
+    """Whether each of the sub-sampled scan's `points` (indices; `spacing`: its pitch, `_subsample`'s) lies at the
+    rim of the data: less than `min_coverage` of the `window_mm` window around it holds points within `window_mm`
+    of it in 3D (a nose in profile or turned far from the camera: the window runs off the head; a frontal nose
+    protruding 25 mm keeps its cheeks in reach). Those are verified from every start yaw, the others from the
+    yaws within `frontal_yaw`."""
+    idx = sub.index_image()
+    half = max(1, int(round(config.window_mm / spacing / 2)))
+    reach2 = config.window_mm ** 2
+    rows, cols = idx.shape
+    out = np.ones(len(points), dtype=bool)
+    for k, (r, c) in enumerate(sub.grid[points]):
+        if not (half <= r < rows - half and half <= c < cols - half):
+            continue  # the window leaves the grid: at its rim
+        near = idx[r - half:r + half + 1, c - half:c + half + 1]
+        near = near[near >= 0]
+        d2 = ((sub.points[near] - sub.points[idx[r, c]]) ** 2).sum(axis=1)
+        out[k] = (d2 <= reach2).sum() < config.min_coverage * (2 * half + 1) ** 2
+    return out
+
+
 def nose_candidates(scan: FaceScan, config: DetectConfig = DetectConfig()) -> tuple[FaceScan, np.ndarray, np.ndarray]:
     """(sub-sampled scan, indices of its candidate nose tips, whether each was found at the rim).
 
@@ -284,9 +305,9 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
 
 def _detect_face(scan: FaceScan, config: DetectConfig) -> Detection:
     if config.proposer:
-        sub, _ = _subsample(scan, config.sample_mm)
+        sub, spacing = _subsample(scan, config.sample_mm)
         cands = proposer(config.proposer).propose(sub.points, config.proposals, config.separation_mm)
-        rim, profile, n_final = np.ones(len(cands), dtype=bool), [], config.proposed_finalists
+        rim, profile, n_final = at_rim(sub, spacing, cands, config), [], config.proposed_finalists
     else:
         sub, cands, rim = nose_candidates(scan, config)
         profile, n_final = silhouette_candidates(sub, config), config.finalists

@@ -28,29 +28,60 @@ class HoleConfig:
     seal_px: int = 2  # gaps in the rim this wide (scattered dropouts) do not open a hole to the outside
 
 
-def hole_mask(scan: FaceScan, config: HoleConfig = HoleConfig()) -> np.ndarray:
-    """(H, W) bool: the missing pixels of the scan's grid that holes consist of (small enough to fill)."""
-    _, valid = scan.to_range_image()
+def _window(scan: FaceScan, margin: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(xyz, valid, origin): the range image of the rows and columns holding points, `margin` empty pixels around
+    them (a cropped face fills a small part of a Kinect frame's grid) or the grid's edge where that is nearer; pixel
+    (r, c) of it is (r, c) + origin of the scan's grid. Nothing beyond the margin holds a point, so closing, hole
+    filling and dilating by less than `margin` pixels give inside it what they give on the whole grid."""
+    lo = np.maximum(scan.grid.min(axis=0) - margin, 0)
+    hi = np.minimum(scan.grid.max(axis=0) + margin + 1, scan.grid_shape)
+    shape = (int(hi[0] - lo[0]), int(hi[1] - lo[1]))
+    xyz = np.full(shape + (3,), np.nan)
+    valid = np.zeros(shape, dtype=bool)
+    g = scan.grid - lo
+    xyz[g[:, 0], g[:, 1]] = scan.points
+    valid[g[:, 0], g[:, 1]] = True
+    return xyz, valid, lo
+
+
+def _margin(config: HoleConfig) -> int:
+    """Pixels of empty border that `hole_mask` and `fill_holes` need around the points (their reach, plus one)."""
+    return max(config.seal_px, config.ring_px) + 2
+
+
+def _holes(valid: np.ndarray, pixel_area: float, config: HoleConfig) -> np.ndarray:
+    """`hole_mask` of a range image's valid mask."""
     sealed = ndimage.binary_closing(valid, np.ones((3, 3), bool), iterations=config.seal_px, border_value=0)
     holes = ndimage.binary_fill_holes(sealed | valid) & ~valid
     labels, n = ndimage.label(holes)
     if n == 0:
         return holes
-    pixel_area = scan.resolution() ** 2
     area = ndimage.sum_labels(holes, labels, index=np.arange(1, n + 1)) * pixel_area
     return np.isin(labels, 1 + np.flatnonzero(area <= config.max_area_mm2))
+
+
+def hole_mask(scan: FaceScan, config: HoleConfig = HoleConfig()) -> np.ndarray:
+    """(H, W) bool: the missing pixels of the scan's grid that holes consist of (small enough to fill)."""
+    mask = np.zeros(scan.grid_shape, dtype=bool)
+    if scan.n_points:
+        _, valid, lo = _window(scan, _margin(config))
+        h, w = valid.shape
+        mask[lo[0]:lo[0] + h, lo[1]:lo[1] + w] = _holes(valid, scan.resolution() ** 2, config)
+    return mask
 
 
 def fill_holes(scan: FaceScan, config: HoleConfig = HoleConfig()) -> FaceScan:
     """The scan with its holes filled; filled points get no normal or colour (normals and colours are dropped) and
     the provenance FILLED."""
-    holes = hole_mask(scan, config)
+    if not scan.n_points:
+        return scan
+    xyz, valid, lo = _window(scan, _margin(config))
+    holes = _holes(valid, scan.resolution() ** 2, config)
     if not holes.any():
         return scan
-    xyz, valid = scan.to_range_image()
     ring = ndimage.binary_dilation(holes, iterations=config.ring_px) & valid
-    known = np.argwhere(ring)
-    wanted = np.argwhere(holes)
+    known = np.argwhere(ring) + lo  # in the scan's grid: the interpolation sees the pixels it always saw
+    wanted = np.argwhere(holes) + lo
     values = griddata(known, xyz[ring], wanted, method="cubic")
     bad = ~np.isfinite(values).all(axis=1)
     if bad.any():
