@@ -65,6 +65,25 @@ def test_the_detector_driven_by_the_proposer_finds_the_nose_of_every_sensor():
     assert sum(e <= 10.0 for e in errors) >= 6 and np.median(errors) <= 6.0, np.round(errors, 1)
 
 
+@pytest.mark.parametrize("sensor", ["kinect-v2", "frgc"])
+def test_a_nose_facing_the_camera_is_inside_the_surface_and_one_in_profile_at_its_rim(sensor):
+    """`at_rim` decides which proposals are verified from every start yaw (those at the rim: a profile) and which
+    from the frontal ones only (about a third of the rigid fits of a frame saved): the true nose of a face
+    looking at the camera or turned 20° lies inside its surface, of one turned 60° or more at the rim, and so does
+    a point whose window leaves the grid."""
+    from facerec3d.preprocess.detect import at_rim
+
+    config = DetectConfig()
+    for yaw, rim in ((0, False), (-20, False), (60, True), (-80, True)):
+        for subject in (500, 501):
+            scan, nose = detector_view(sensor, yaw, 0, None, subject=subject)
+            sub, spacing = _subsample(scan, config.sample_mm)
+            tip = np.argmin(np.linalg.norm(sub.points - nose, axis=1))
+            assert at_rim(sub, spacing, np.array([tip]), config).tolist() == [rim], (yaw, subject)
+    corner = np.argmin(sub.grid.sum(axis=1))  # the point nearest the grid's top-left corner
+    assert at_rim(sub, spacing, np.array([corner]), config).tolist() == [True]
+
+
 def test_a_damaged_proposer_model_is_one_clear_error(tmp_path):
     bad = tmp_path / "nose.onnx"
     bad.write_bytes(b"not a model")

@@ -79,6 +79,7 @@ class DetectConfig:
     start_yaws: tuple[float, ...] = (-70.0, -35.0, 0.0, 35.0, 70.0)  # degrees: coarse fits start from the Hotelling
     #                                                                   frame turned so (a head in profile) ...
     frontal_yaw: float = 40.0  # ... those of at most this yaw for candidates inside the surface, all for those at its rim
+    #                            (hand-made candidates: `nose_candidates`; the proposer's: `at_rim`, since 2026-12-06)
     crown_mm: tuple[float, float] = (30.0, 190.0)  # a nose tip lies this far below the top of its head (upright) ...
     crown_reach_mm: float = 250.0  # ... the highest point this far sideways or less ...
     crown_depth_mm: float = 400.0  # ... and this far in depth (not the wall behind)
@@ -122,7 +123,7 @@ class DetectConfig:
     #                      move: examples/preprocess-fast.toml)
     proposer: str = "shipped"  # the learned nose proposer (`propose.NoseProposer`: "shipped", facerec3d/models/
     #   nose.onnx, or an ONNX file of `facerec3d train-nose`) names the candidates instead of the hand-made ones above,
-    #   each verified from every start yaw; a scan where none of its placements is face-shaped is searched again
+    #   each verified like them (`at_rim`); a scan where none of its placements is face-shaped is searched again
     #   from the hand-made ones. "": those alone (the default until 2026-12-05). Since 2026-12-05: rap3df-2019
     #   held-out half 60.8 → 64.6 % rank-1 (default fusion), left / right 58.3 / 50.0 → 60.4 / 60.9 %, the
     #   synthetic sensor and outside-model sets equal or better (docs/methods.md, "A learned nose proposer") ...
@@ -232,13 +233,13 @@ def _peaks(height: np.ndarray, sep: int, count: int) -> np.ndarray:
 
 def at_rim(sub: FaceScan, spacing: float, points: np.ndarray, config: DetectConfig = DetectConfig()) -> np.ndarray:
     """Whether each of the sub-sampled scan's `points` (indices; `spacing`: its pitch, `_subsample`'s) lies at the
-    rim of the data: less than `min_coverage` of the `window_mm` window around it holds points within `window_mm`
-    of it in 3D (a nose in profile or turned far from the camera: the window runs off the head; a frontal nose
-    protruding 25 mm keeps its cheeks in reach). Those are verified from every start yaw, the others from the
-    yaws within `frontal_yaw`."""
+    rim of the data: less than `min_coverage` of the `window_mm` window around it holds points within `context_mm`
+    of it in 3D (a nose in profile or turned far from the camera: the window runs off the head, onto nothing or the
+    background; the cheeks of a nose facing the camera lie 20-40 mm behind its tip, in reach). Those are verified
+    from every start yaw, the others from the yaws within `frontal_yaw`.""" 
     idx = sub.index_image()
     half = max(1, int(round(config.window_mm / spacing / 2)))
-    reach2 = config.window_mm ** 2
+    reach2 = config.context_mm ** 2
     rows, cols = idx.shape
     out = np.ones(len(points), dtype=bool)
     for k, (r, c) in enumerate(sub.grid[points]):
