@@ -208,6 +208,18 @@ class FaceScan:
         valid[self.grid[:, 0], self.grid[:, 1]] = True
         return xyz, valid
 
+    def windowed(self, margin: int = 0) -> tuple["FaceScan", np.ndarray]:
+        """(the scan on the rows and columns of its grid that hold points, `margin` more on each side where the grid
+        has them; the window's origin in the grid): pixel (r, c) of the window is pixel (r, c) + origin of the scan.
+        A cropped face fills a small part of a camera frame's grid; its range images need only the window."""
+        if self.grid is None or self.grid_shape is None:
+            raise ValueError("scan has no range-image grid")
+        if not self.n_points:
+            return self, np.zeros(2, dtype=np.int64)
+        lo = np.maximum(self.grid.min(axis=0) - margin, 0)
+        hi = np.minimum(self.grid.max(axis=0) + margin + 1, self.grid_shape)
+        return self.replace(grid=self.grid - lo, grid_shape=(int(hi[0] - lo[0]), int(hi[1] - lo[1]))), lo
+
     def index_image(self) -> np.ndarray:
         """(H, W) int image holding each pixel's point index, -1 where there is none."""
         if self.grid is None or self.grid_shape is None:
@@ -227,8 +239,7 @@ class FaceScan:
         """
         if not self.n_points:
             return np.zeros((0, 3), np.int64)
-        (r0, c0), (r1, c1) = self.grid.min(axis=0), self.grid.max(axis=0) + 1
-        idx = self.index_image()[r0:r1, c0:c1]  # the rows and columns holding points (a cropped face is small)
+        idx = self.windowed()[0].index_image()  # the rows and columns holding points (a cropped face is small)
         if max_edge is None:
             max_edge = 4.0 * self.resolution()
         xyz = self.points[np.maximum(idx, 0)]

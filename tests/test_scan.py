@@ -14,6 +14,22 @@ def test_range_image_round_trip(cap):
     assert np.isnan(xyz[5, 7]).all()
 
 
+def test_a_window_holds_the_same_pixels_and_stops_at_the_grid_edge():
+    xyz = np.zeros((40, 50, 3))
+    valid = np.zeros((40, 50), bool)
+    valid[1:6, 30:48] = True  # 1 pixel from the top edge, 2 from the right
+    xyz[..., 2] = np.arange(40 * 50).reshape(40, 50)  # each pixel's depth names it
+    scan = FaceScan.from_range_image(xyz, valid)
+    for margin, origin, shape in ((0, (1, 30), (5, 18)), (3, (0, 27), (9, 23))):
+        window, lo = scan.windowed(margin)
+        assert lo.tolist() == list(origin) and window.grid_shape == shape
+        z, ok = window.to_range_image()
+        assert ok.sum() == valid.sum()
+        assert np.array_equal(z[ok][:, 2], xyz[valid][:, 2])  # the same pixels, in the same places
+        assert np.array_equal(np.argwhere(ok) + lo, np.argwhere(valid))
+    assert np.array_equal(scan.windowed(2)[0].triangles(), scan.triangles())
+
+
 def test_triangles_skip_invalid_pixels_and_long_edges():
     scan = cap_image(invalid=())
     full = scan.triangles()

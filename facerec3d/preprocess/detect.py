@@ -236,7 +236,7 @@ def at_rim(sub: FaceScan, spacing: float, points: np.ndarray, config: DetectConf
     rim of the data: less than `min_coverage` of the `window_mm` window around it holds points within `context_mm`
     of it in 3D (a nose in profile or turned far from the camera: the window runs off the head, onto nothing or the
     background; the cheeks of a nose facing the camera lie 20-40 mm behind its tip, in reach). Those are verified
-    from every start yaw, the others from the yaws within `frontal_yaw`.""" 
+    from every start yaw, the others from the yaws within `frontal_yaw`."""
     idx = sub.index_image()
     half = max(1, int(round(config.window_mm / spacing / 2)))
     reach2 = config.context_mm ** 2

@@ -29,19 +29,11 @@ class HoleConfig:
 
 
 def _window(scan: FaceScan, margin: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(xyz, valid, origin): the range image of the rows and columns holding points, `margin` empty pixels around
-    them (a cropped face fills a small part of a Kinect frame's grid) or the grid's edge where that is nearer; pixel
-    (r, c) of it is (r, c) + origin of the scan's grid. Nothing beyond the margin holds a point, so closing, hole
-    filling and dilating by less than `margin` pixels give inside it what they give on the whole grid."""
-    lo = np.maximum(scan.grid.min(axis=0) - margin, 0)
-    hi = np.minimum(scan.grid.max(axis=0) + margin + 1, scan.grid_shape)
-    shape = (int(hi[0] - lo[0]), int(hi[1] - lo[1]))
-    xyz = np.full(shape + (3,), np.nan)
-    valid = np.zeros(shape, dtype=bool)
-    g = scan.grid - lo
-    xyz[g[:, 0], g[:, 1]] = scan.points
-    valid[g[:, 0], g[:, 1]] = True
-    return xyz, valid, lo
+    """(xyz, valid, origin): the range image of `FaceScan.windowed(margin)`. Nothing beyond the margin holds a point,
+    so closing, hole filling and dilating by less than `margin` pixels give inside it what they give on the whole
+    grid."""
+    window, lo = scan.windowed(margin)
+    return *window.to_range_image(), lo
 
 
 def _margin(config: HoleConfig) -> int:
