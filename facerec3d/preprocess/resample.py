@@ -81,10 +81,16 @@ def rasterize_depth(points: np.ndarray, triangles: np.ndarray, config: ResampleC
 
 def _depth_image(points, triangles, x0: float, y0: float, res: float, rows: int, cols: int) -> np.ndarray:
     """`front_triangles`' depth with NaN where no triangle covers a cell."""
-    z, _, _ = front_triangles(np.ascontiguousarray(points, np.float64), np.ascontiguousarray(triangles, np.int64),
-                   x0, y0, res, rows, cols)
+    return _rasterised(points, triangles, x0, y0, res, rows, cols)[0]
+
+
+def _rasterised(points, triangles, x0: float, y0: float, res: float, rows: int,
+                cols: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`front_triangles` with NaN depth where no triangle covers a cell."""
+    z, tri, bary = front_triangles(np.ascontiguousarray(points, np.float64),
+                                   np.ascontiguousarray(triangles, np.int64), x0, y0, res, rows, cols)
     z[~np.isfinite(z)] = np.nan
-    return z
+    return z, tri, bary
 
 
 def grid_xy(config: ResampleConfig = ResampleConfig()) -> tuple[np.ndarray, np.ndarray]:
@@ -103,16 +109,17 @@ def depth_to_scan(z: np.ndarray, config: ResampleConfig, like: FaceScan | None =
 
 def resample(scan: FaceScan, config: ResampleConfig = ResampleConfig()) -> FaceScan:
     """The frontal-frame scan on a uniform x–y grid (front-most surface, linear interpolation); each cell takes the
-    provenance (`FaceScan.provenance`) of the scan point nearest it in x–y."""
+    provenance (`FaceScan.provenance`) of the corner of its triangle that weighs most in its depth (the corner
+    nearest it, in barycentric terms)."""
     if scan.grid is None:
         raise ValueError("resampling needs a range-image grid (see preprocess.gridify for point clouds)")
-    z = rasterize_depth(scan.points, scan.triangles(), config)
+    tris, w = scan.triangles(), config.half_width_mm
+    z, tri, bary = _rasterised(scan.points, tris, -w, w, config.resolution_mm, config.size, config.size)
     out = depth_to_scan(z, config, like=scan)
-    if scan.provenance is not None and scan.provenance.any() and out.n_points:  # each cell: its nearest source's
-        from scipy.spatial import cKDTree
-
-        _, nearest = cKDTree(scan.points[:, :2]).query(out.points[:, :2])
-        out = out.replace(provenance=scan.provenance[nearest])
+    if scan.provenance is not None and scan.provenance.any() and out.n_points:
+        r, c = out.grid[:, 0], out.grid[:, 1]
+        corner = tris[tri[r, c], np.argmax(bary[r, c], axis=1)]
+        out = out.replace(provenance=scan.provenance[corner])
     return out
 
 
