@@ -26,6 +26,9 @@ class HoleConfig:
     max_area_mm2: float = 2000.0  # larger enclosed holes are left open
     ring_px: int = 3  # width of the ring of valid pixels interpolated from
     seal_px: int = 2  # gaps in the rim this wide (scattered dropouts) do not open a hole to the outside
+    small_mm2: float = 0.0  # holes of at most this area (dropouts of a laser scanner: a few 0.7 mm pixels) are filled
+    #                         by harmonic interpolation from the pixels around them (`_harmonic`), not the cubic one
+    #                         (0: every hole cubic)
 
 
 def _window(scan: FaceScan, margin: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -62,22 +65,75 @@ def hole_mask(scan: FaceScan, config: HoleConfig = HoleConfig()) -> np.ndarray:
     return mask
 
 
+_STEPS = ((-1, 0), (1, 0), (0, -1), (0, 1))
+
+
+def _small(holes: np.ndarray, valid: np.ndarray, most: int) -> np.ndarray:
+    """The pixels of the holes of at most `most` pixels that border a valid pixel (4-neighbours)."""
+    labels, n = ndimage.label(holes)
+    size = np.bincount(labels.ravel(), minlength=n + 1)
+    grown = ndimage.binary_dilation(valid, np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool))
+    touches = np.bincount(labels[grown & holes], minlength=n + 1) > 0
+    keep = (size <= most) & touches
+    keep[0] = False
+    return keep[labels]
+
+
+def _harmonic(xyz: np.ndarray, valid: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """(n, 3) X, Y and Z at the `wanted` pixels (row-major order) solving Laplace's equation, the valid pixels
+    around them fixed (the discrete membrane; a dropout of a few pixels on a face is as flat as that)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.linalg import spsolve
+
+    rows, cols = np.nonzero(wanted)
+    n = len(rows)
+    index = np.full(wanted.shape, -1, np.int64)
+    index[rows, cols] = np.arange(n)
+    degree, b = np.zeros(n), np.zeros((n, 3))
+    i_all, j_all = [], []
+    for dr, dc in _STEPS:
+        r, c = rows + dr, cols + dc
+        inside = (r >= 0) & (r < wanted.shape[0]) & (c >= 0) & (c < wanted.shape[1])
+        r, c = np.where(inside, r, 0), np.where(inside, c, 0)
+        unknown = inside & (index[r, c] >= 0)
+        known = inside & ~unknown & valid[r, c]
+        degree += unknown | known
+        np.add.at(b, np.flatnonzero(known), xyz[r[known], c[known]])
+        i_all.append(np.flatnonzero(unknown))
+        j_all.append(index[r[unknown], c[unknown]])
+    i, j = np.concatenate(i_all), np.concatenate(j_all)
+    A = coo_matrix((np.r_[degree, -np.ones(len(i))], (np.r_[np.arange(n), i], np.r_[np.arange(n), j])),
+                   shape=(n, n)).tocsc()
+    return np.asarray(spsolve(A, b)).reshape(n, 3)
+
+
 def fill_holes(scan: FaceScan, config: HoleConfig = HoleConfig()) -> FaceScan:
     """The scan with its holes filled; filled points get no normal or colour (normals and colours are dropped) and
     the provenance FILLED."""
     if not scan.n_points:
         return scan
     xyz, valid, lo = _window(scan, _margin(config))
-    holes = _holes(valid, scan.resolution() ** 2, config)
+    pixel_area = scan.resolution() ** 2
+    holes = _holes(valid, pixel_area, config)
     if not holes.any():
         return scan
-    ring = ndimage.binary_dilation(holes, iterations=config.ring_px) & valid
-    known = np.argwhere(ring) + lo  # in the scan's grid: the interpolation sees the pixels it always saw
-    wanted = np.argwhere(holes) + lo
-    values = griddata(known, xyz[ring], wanted, method="cubic")
-    bad = ~np.isfinite(values).all(axis=1)
-    if bad.any():
-        values[bad] = griddata(known, xyz[ring], wanted[bad], method="nearest")
+    small = _small(holes, valid, int(config.small_mm2 / pixel_area)) if config.small_mm2 > 0 else np.zeros_like(holes)
+    wanted, values = [np.zeros((0, 2), np.int64)], [np.zeros((0, 3))]
+    if small.any():
+        wanted.append(np.argwhere(small))
+        values.append(_harmonic(xyz, valid, small))
+    large = holes & ~small
+    if large.any():
+        ring = ndimage.binary_dilation(large, iterations=config.ring_px) & valid
+        known = np.argwhere(ring) + lo  # in the scan's grid: the interpolation sees the pixels it always saw
+        at = np.argwhere(large) + lo
+        cubic = griddata(known, xyz[ring], at, method="cubic")
+        bad = ~np.isfinite(cubic).all(axis=1)
+        if bad.any():
+            cubic[bad] = griddata(known, xyz[ring], at[bad], method="nearest")
+        wanted.append(at - lo)
+        values.append(cubic)
+    wanted, values = np.concatenate(wanted) + lo, np.concatenate(values)
     return scan.replace(
         points=np.concatenate([scan.points, values]),
         grid=np.concatenate([scan.grid, wanted]),
