@@ -100,6 +100,26 @@ def test_filled_holes_match_the_true_surface():
     assert np.sqrt(sq / n) < 1.0
 
 
+def test_dropouts_filled_harmonically_lie_on_the_true_surface():
+    """`HoleConfig.small_mm2`: holes up to that area are filled by the membrane through the pixels around them
+    (a sparse solve), the larger ones cubically as before; the filled dropouts lie on the generator's surface as
+    closely as the cubic fill puts them there."""
+    from facerec3d.preprocess.holes import HoleConfig
+
+    err = {0.0: [], 10.0: []}
+    for i in range(4):
+        s = quick_scan(i, seed=i, noise_mm=0.0, spike_fraction=0.0, n_holes=12, hole_radius_mm=(0.5, 1.5))
+        face = crop_sphere(s.scan, s.landmarks["nose_tip"], 80.0)
+        for small, e in err.items():
+            filled = fill_holes(face, HoleConfig(small_mm2=small))
+            g = filled.grid[face.n_points:]
+            inside = s.hole[g[:, 0], g[:, 1]]
+            e.append(filled.points[face.n_points:][inside] - s.clean_xyz[g[inside, 0], g[inside, 1]])
+    rms = {k: float(np.sqrt((np.concatenate(v) ** 2).sum(axis=1).mean())) for k, v in err.items()}
+    assert len(np.concatenate(err[10.0])) > 100
+    assert rms[10.0] <= 0.3 and rms[10.0] <= 1.5 * rms[0.0], rms
+
+
 def test_resampled_cells_over_filled_holes_are_marked_filled():
     """Each resampled cell takes the provenance of the corner weighing most in its depth: the cells over the holes
     that hole filling filled are FILLED, those elsewhere SEEN, as the scan point nearest each cell says (found here
