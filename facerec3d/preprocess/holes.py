@@ -40,7 +40,7 @@ def _window(scan: FaceScan, margin: int) -> tuple[np.ndarray, np.ndarray, np.nda
 
 
 def _margin(config: HoleConfig) -> int:
-    """Pixels of empty border that `hole_mask` and `fill_holes` need around the points (their reach, plus one)."""
+    """Pixels of empty border that `hole_mask` and `fill_holes` need around the points (their reach and two more)."""
     return max(config.seal_px, config.ring_px) + 2
 
 
@@ -118,22 +118,20 @@ def fill_holes(scan: FaceScan, config: HoleConfig = HoleConfig()) -> FaceScan:
     if not holes.any():
         return scan
     small = _small(holes, valid, int(config.small_mm2 / pixel_area)) if config.small_mm2 > 0 else np.zeros_like(holes)
-    wanted, values = [np.zeros((0, 2), np.int64)], [np.zeros((0, 3))]
-    if small.any():
-        wanted.append(np.argwhere(small))
-        values.append(_harmonic(xyz, valid, small))
     large = holes & ~small
+    filled = []  # (pixels of the window, their X, Y, Z)
+    if small.any():
+        filled.append((np.argwhere(small), _harmonic(xyz, valid, small)))
     if large.any():
         ring = ndimage.binary_dilation(large, iterations=config.ring_px) & valid
-        known = np.argwhere(ring) + lo  # in the scan's grid: the interpolation sees the pixels it always saw
-        at = np.argwhere(large) + lo
-        cubic = griddata(known, xyz[ring], at, method="cubic")
+        known, at = np.argwhere(ring), np.argwhere(large)  # interpolated in the scan's grid (+ lo): the pixels it
+        cubic = griddata(known + lo, xyz[ring], at + lo, method="cubic")  # always saw, to the bit
         bad = ~np.isfinite(cubic).all(axis=1)
         if bad.any():
-            cubic[bad] = griddata(known, xyz[ring], at[bad], method="nearest")
-        wanted.append(at - lo)
-        values.append(cubic)
-    wanted, values = np.concatenate(wanted) + lo, np.concatenate(values)
+            cubic[bad] = griddata(known + lo, xyz[ring], at[bad] + lo, method="nearest")
+        filled.append((at, cubic))
+    wanted = np.concatenate([at for at, _ in filled]) + lo
+    values = np.concatenate([v for _, v in filled])
     return scan.replace(
         points=np.concatenate([scan.points, values]),
         grid=np.concatenate([scan.grid, wanted]),
