@@ -100,24 +100,29 @@ def test_filled_holes_match_the_true_surface():
     assert np.sqrt(sq / n) < 1.0
 
 
-def test_dropouts_filled_harmonically_lie_on_the_true_surface():
-    """`HoleConfig.small_mm2`: holes up to that area are filled by the membrane through the pixels around them
-    (a sparse solve), the larger ones cubically as before; the filled dropouts lie on the generator's surface as
-    closely as the cubic fill puts them there."""
+def test_holes_filled_by_the_thin_plate_lie_on_the_true_surface():
+    """The default thin-plate fill puts the generator's dropouts (discs 1-3 mm across, and 4-10 mm) on its clean
+    surface, nearer than the cubic interpolation over a ring does; and a fill that drops the bending energy (a
+    membrane, which flattens each hole towards its rim) lies farther from it on the larger holes."""
     from facerec3d.preprocess.holes import HoleConfig
 
-    err = {0.0: [], 10.0: []}
-    for i in range(4):
-        s = quick_scan(i, seed=i, noise_mm=0.0, spike_fraction=0.0, n_holes=12, hole_radius_mm=(0.5, 1.5))
-        face = crop_sphere(s.scan, s.landmarks["nose_tip"], 80.0)
-        for small, e in err.items():
-            filled = fill_holes(face, HoleConfig(small_mm2=small))
-            g = filled.grid[face.n_points:]
-            inside = s.hole[g[:, 0], g[:, 1]]
-            e.append(filled.points[face.n_points:][inside] - s.clean_xyz[g[inside, 0], g[inside, 1]])
-    rms = {k: float(np.sqrt((np.concatenate(v) ** 2).sum(axis=1).mean())) for k, v in err.items()}
-    assert len(np.concatenate(err[10.0])) > 100
-    assert rms[10.0] <= 0.3 and rms[10.0] <= 1.5 * rms[0.0], rms
+    for radius, bound in (((0.5, 1.5), 0.3), ((2.0, 5.0), 0.6)):
+        err = {"thin-plate": [], "cubic": [], "membrane": []}
+        for i in range(4):
+            s = quick_scan(i, seed=i, noise_mm=0.0, spike_fraction=0.0, n_holes=12, hole_radius_mm=radius)
+            face = crop_sphere(s.scan, s.landmarks["nose_tip"], 80.0)
+            for name, e in err.items():
+                config = HoleConfig(interpolation="cubic") if name == "cubic" else HoleConfig(
+                    stretch=1e6 if name == "membrane" else HoleConfig.stretch)
+                filled = fill_holes(face, config)
+                g = filled.grid[face.n_points:]
+                inside = s.hole[g[:, 0], g[:, 1]]
+                e.append(filled.points[face.n_points:][inside] - s.clean_xyz[g[inside, 0], g[inside, 1]])
+        rms = {k: float(np.sqrt((np.concatenate(v) ** 2).sum(axis=1).mean())) for k, v in err.items()}
+        assert len(np.concatenate(err["thin-plate"])) > 100
+        assert rms["thin-plate"] <= bound and rms["thin-plate"] <= rms["cubic"], (radius, rms)
+        if radius[0] >= 2.0:
+            assert rms["membrane"] > 1.2 * rms["thin-plate"], rms
 
 
 def test_resampled_cells_over_filled_holes_are_marked_filled():

@@ -53,6 +53,10 @@ class DetectConfig:
     """Nose-tip detection and face cropping (§8.5.1)."""
 
     sample_mm: float = 2.0  # spacing of the sub-sampled range image used for the search
+    detail_mm: float = 1.5  # the full fits and the tests of each placement (`Neighbours`) use every k-th row and
+    #   column of a scan finer than this (k = round(detail_mm / pitch): 2 on a 0.75 mm laser scan, 1 on a Kinect
+    #   frame); 0: every point. A Kinect v2 face at ~1.5-2.5 mm is detected as well as a laser scan, and the full fit
+    #   uses 1,500 points either way (`model`). Since 2026-12-06: an FRGC-size scan's detection ~1.3x faster
     window_mm: float = 40.0  # the local mean that protrusion is measured against
     min_coverage: float = 0.7  # share of that window that must hold data ...
     rim_coverage: float = 0.35  # ... or this share, for candidates along the normal at the rim (a nose in profile)
@@ -160,6 +164,8 @@ def _subsample(scan: FaceScan, spacing_mm: float) -> tuple[FaceScan, float]:
     """The grid scan on every k-th row and column so that points are ~spacing_mm apart; (scan, spacing)."""
     res = scan.resolution()
     step = max(1, int(round(spacing_mm / res)))
+    if step == 1:
+        return scan, res
     g = scan.grid
     keep = (g[:, 0] % step == 0) & (g[:, 1] % step == 0)
     sub = scan.subset(keep)
@@ -305,6 +311,7 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
 
 
 def _detect_face(scan: FaceScan, config: DetectConfig) -> Detection:
+    fine = _subsample(scan, config.detail_mm)[0] if config.detail_mm > 0 else scan  # full fits and tests
     if config.proposer:
         sub, spacing = _subsample(scan, config.sample_mm)
         cands = proposer(config.proposer).propose(sub.points, config.proposals, config.separation_mm)
@@ -329,7 +336,7 @@ def _detect_face(scan: FaceScan, config: DetectConfig) -> Detection:
     # worse was the face
     # on quantised depth nearly every placement fits the rigid mean face, so those with a nose standing out of
     # the scan where the mean face puts it go first (the same test that decides below)
-    around = Neighbours(scan, config)
+    around = Neighbours(fine, config)
     coarse.sort(key=lambda f: -f.inlier_fraction + head_penalty(f, sub, crown, config))
     first, finalists = best_distinct(coarse, lambda f: shows_nose(around, f, config), config.separation_mm,
                                      n_final)
@@ -342,11 +349,11 @@ def _detect_face(scan: FaceScan, config: DetectConfig) -> Detection:
     fitting = [ModelFitting(around.points(f, config.context_mm, exact=True), f.R, f.t, config.model)
                for f in finalists]
     if 0 < config.screen_iterations < config.model.iterations and config.screened < len(finalists):
-        ranked = rank_placements([g.run(config.screen_iterations).result() for g in fitting], finalists, scan,
+        ranked = rank_placements([g.run(config.screen_iterations).result() for g in fitting], finalists, fine,
                                  around, sub, crown, config)
         keep = sorted(x.index for x in ranked[: config.screened])  # in the finalists' order (ties stay as they were)
         fitting, finalists = [fitting[i] for i in keep], [finalists[i] for i in keep]
-    ranked = rank_placements([g.run().result() for g in fitting], finalists, scan, around, sub, crown, config)
+    ranked = rank_placements([g.run().result() for g in fitting], finalists, fine, around, sub, crown, config)
     fit, (protrusion, dome), (_, seen) = ranked[0].fit, ranked[0].heights, ranked[0].seen
     if not ranked[0].face_shaped:
         if fit.inlier_fraction < config.min_inliers:

