@@ -87,6 +87,12 @@ def from_dict(cls, data: dict[str, Any], source: str | Path | None = None, prefi
     if not isinstance(data, dict):
         raise SettingsError(source, prefix.rstrip(".") or None, f"must be a table of {cls.__name__} settings")
     known = {f.name for f in dataclasses.fields(cls)}
+    retired = getattr(cls, "RETIRED", {})  # settings removed since: stored at the value that did nothing, they are
+    for name in set(data) & set(retired) - known:  # dropped (a gallery enrolled then stays readable), else refused
+        if data[name] != retired[name]:
+            raise SettingsError(source, prefix + name, f"was removed (only {retired[name]!r} is still read), "
+                                                       f"not {data[name]!r}"[:200])
+        data = {k: v for k, v in data.items() if k != name}
     if unknown := set(data) - known:
         raise SettingsError(source, prefix.rstrip(".") or None,
                             f"unknown {cls.__name__} settings: {', '.join(sorted(map(str, unknown)))}")

@@ -101,7 +101,7 @@ def test_filled_holes_match_the_true_surface():
 
 
 def test_holes_filled_by_the_thin_plate_lie_on_the_true_surface():
-    """The default thin-plate fill puts the generator's dropouts (discs 1-3 mm across, and 4-10 mm) on its clean
+    """The thin-plate fill (`HoleConfig.interpolation`) puts the generator's dropouts (discs 1-3 mm across, and 4-10 mm) on its clean
     surface, nearer than the cubic interpolation over a ring does; and a fill that drops the bending energy (a
     membrane, which flattens each hole towards its rim) lies farther from it on the larger holes."""
     from facerec3d.preprocess.holes import HoleConfig
@@ -113,7 +113,7 @@ def test_holes_filled_by_the_thin_plate_lie_on_the_true_surface():
             face = crop_sphere(s.scan, s.landmarks["nose_tip"], 80.0)
             for name, e in err.items():
                 config = HoleConfig(interpolation="cubic") if name == "cubic" else HoleConfig(
-                    stretch=1e6 if name == "membrane" else HoleConfig.stretch)
+                    interpolation="thin-plate", stretch=1e6 if name == "membrane" else HoleConfig.stretch)
                 filled = fill_holes(face, config)
                 g = filled.grid[face.n_points:]
                 inside = s.hole[g[:, 0], g[:, 1]]
@@ -654,3 +654,42 @@ def test_finalists_ranked_after_a_few_iterations_keep_the_placement_that_fitting
         assert np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t) and a.fit_rms_mm == b.fit_rms_mm
         # the placement on the face, not one of the other finalists (they lie separation_mm apart or more)
         assert np.linalg.norm(a.nose_tip - truth.landmarks["nose_tip"]) < screened.separation_mm / 2
+
+
+def test_a_retired_hole_setting_reads_back_only_at_the_value_that_did_nothing():
+    """`[holes] small_mm2` (session 30's harmonic fill, off at 0) was removed: settings and galleries stored with it at
+    0 read back as the defaults; any other value is refused with one line naming it."""
+    from facerec3d.errors import SettingsError
+    from facerec3d.preprocess import PreprocessConfig
+
+    assert PreprocessConfig.from_dict({"holes": {"small_mm2": 0.0}}) == PreprocessConfig()
+    with pytest.raises(SettingsError, match=r"old\.toml.*holes\.small_mm2.*removed"):
+        PreprocessConfig.from_dict({"holes": {"small_mm2": 10.0}}, "old.toml")
+    with pytest.raises(SettingsError, match="unknown HoleConfig settings: large_mm2"):
+        PreprocessConfig.from_dict({"holes": {"large_mm2": 0.0}}, "old.toml")
+
+
+def test_the_thin_plate_fills_a_tilted_plane_exactly_and_a_hole_touching_the_face_only_diagonally():
+    """The thin plate's energies vanish on a plane, so holes of any shape in a tilted plane are filled onto it; a
+    hole pixel no valid pixel 4-borders (a notch of the outline that sealing closed) takes its nearest valid
+    pixel's values instead of leaving the solve singular."""
+    from facerec3d.preprocess.holes import _thin_plate_fill
+
+    rr, cc = np.mgrid[0:30, 0:40].astype(float)
+    xyz = np.stack([cc * 0.7, rr * 0.7, 0.3 * cc - 0.2 * rr - 900.0], axis=-1)
+    valid = np.ones((30, 40), bool)
+    valid[0:2, :] = valid[:, 0:2] = False  # an empty border
+    holes = np.zeros_like(valid)
+    holes[5:9, 6:15] = holes[20, 20] = holes[12:25, 30] = True  # a block, a pixel, a line
+    valid &= ~holes
+    valid[2, 3] = False  # (2, 2) keeps only diagonal valid neighbours ...
+    valid[3, 2] = False
+    holes[2, 2], valid[2, 2] = True, False  # ... and becomes a hole
+    values = _thin_plate_fill(np.where(valid[..., None], xyz, np.nan), valid, holes, 0.01)
+    truth = xyz[holes]
+    at = [tuple(p) for p in np.argwhere(holes)]
+    corner = at.index((2, 2))
+    rest = np.arange(len(at)) != corner
+    assert np.abs(values[rest] - truth[rest]).max() < 1e-6
+    assert np.isfinite(values).all()
+    assert np.abs(values[corner] - xyz[3, 3]).max() < 1e-12  # its nearest valid pixel

@@ -147,21 +147,28 @@ def test_where_no_proposed_placement_is_a_face_the_hand_made_search_finds_it(mon
     assert np.linalg.norm(detect_face(scan, config).nose_tip - nose) <= 10.0  # ... the search from the hand-made does
 
 
-def test_a_fine_scan_is_detected_on_every_second_row_and_column(monkeypatch):
-    """`DetectConfig.detail_mm`: a 0.75 mm laser scan's full fits and placement tests see every second row and column
-    (a quarter of the points), a Kinect frame all of its points; the nose lands where the detector finds it with
-    every point, near the generator's truth."""
+def test_a_fine_scan_is_tested_on_every_second_row_and_column(monkeypatch):
+    """`DetectConfig.detail_mm`: the placements of a 0.75 mm laser scan are tested (`Neighbours` with lines of
+    sight) on every second row and column, a quarter of its points, while the full fits see every point; a Kinect
+    frame is tested on all of its points. The nose lands where the detector finds it with every point, near the
+    generator's truth."""
     import facerec3d.preprocess.detect as detect
 
     seen = []
     build = detect.Neighbours.__init__
-    monkeypatch.setattr(detect.Neighbours, "__init__",
-                        lambda self, scan, config: (seen.append(scan.n_points), build(self, scan, config))[1])
+    monkeypatch.setattr(detect.Neighbours, "__init__", lambda self, scan, config, sight=True: (
+        seen.append((scan.n_points, sight)), build(self, scan, config, sight))[1])
     for sensor, quarter in (("frgc", True), ("kinect-v2", False)):
         view, truth = detector_view(sensor, 20, 0, None, 3)
         seen.clear()
-        coarse, fine = (detect_face(view, replace(DetectConfig(), detail_mm=d)) for d in (1.5, 0.0))
-        assert seen[-1] == view.n_points  # detail 0: every point
-        assert seen[0] < 0.3 * view.n_points if quarter else seen[0] == view.n_points, (sensor, seen, view.n_points)
+        coarse = detect_face(view, replace(DetectConfig(), detail_mm=1.5))
+        if quarter:
+            assert seen[0][0] < 0.3 * view.n_points and seen[0][1], seen
+            assert seen[1] == (view.n_points, False), seen  # the full fits' points
+        else:
+            assert seen == [(view.n_points, True)], seen
+        seen.clear()
+        fine = detect_face(view, replace(DetectConfig(), detail_mm=0.0))
+        assert seen == [(view.n_points, True)], seen
         assert np.linalg.norm(coarse.nose_tip - truth) <= 4.0
-        assert np.linalg.norm(coarse.nose_tip - fine.nose_tip) <= 2.0
+        assert np.linalg.norm(coarse.nose_tip - fine.nose_tip) <= 1.0

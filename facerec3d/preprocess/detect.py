@@ -53,10 +53,9 @@ class DetectConfig:
     """Nose-tip detection and face cropping (§8.5.1)."""
 
     sample_mm: float = 2.0  # spacing of the sub-sampled range image used for the search
-    detail_mm: float = 1.5  # the full fits and the tests of each placement (`Neighbours`) use every k-th row and
-    #   column of a scan finer than this (k = round(detail_mm / pitch): 2 on a 0.75 mm laser scan, 1 on a Kinect
-    #   frame); 0: every point. A Kinect v2 face at ~1.5-2.5 mm is detected as well as a laser scan, and the full fit
-    #   uses 1,500 points either way (`model`). Since 2026-12-06: an FRGC-size scan's detection ~1.3x faster
+    detail_mm: float = 1.5  # the tests of each placement (`Neighbours`: `nose_heights`, `seen_share`,
+    #   `disc_coverage`) use every k-th row and column of a scan finer than this (k = round(detail_mm / pitch): 2 on a
+    #   0.75 mm laser scan, 1 on a Kinect frame); the full fits every point; 0: every point. Since 2026-12-06
     window_mm: float = 40.0  # the local mean that protrusion is measured against
     min_coverage: float = 0.7  # share of that window that must hold data ...
     rim_coverage: float = 0.35  # ... or this share, for candidates along the normal at the rim (a nose in profile)
@@ -311,7 +310,7 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
 
 
 def _detect_face(scan: FaceScan, config: DetectConfig) -> Detection:
-    fine = _subsample(scan, config.detail_mm)[0] if config.detail_mm > 0 else scan  # full fits and tests
+    tested = _subsample(scan, config.detail_mm)[0] if config.detail_mm > 0 else scan  # placements' tests
     if config.proposer:
         sub, spacing = _subsample(scan, config.sample_mm)
         cands = proposer(config.proposer).propose(sub.points, config.proposals, config.separation_mm)
@@ -336,7 +335,7 @@ def _detect_face(scan: FaceScan, config: DetectConfig) -> Detection:
     # worse was the face
     # on quantised depth nearly every placement fits the rigid mean face, so those with a nose standing out of
     # the scan where the mean face puts it go first (the same test that decides below)
-    around = Neighbours(fine, config)
+    around = Neighbours(tested, config)
     coarse.sort(key=lambda f: -f.inlier_fraction + head_penalty(f, sub, crown, config))
     first, finalists = best_distinct(coarse, lambda f: shows_nose(around, f, config), config.separation_mm,
                                      n_final)
@@ -346,14 +345,15 @@ def _detect_face(scan: FaceScan, config: DetectConfig) -> Detection:
         raise FailureToAcquire(why, scan.meta.path)
     # the best distinct placements get a full fit (pose, identity, expression); with `screen_iterations`, each
     # is fitted that far first and only the `screened` best so ranked are fitted to the end
-    fitting = [ModelFitting(around.points(f, config.context_mm, exact=True), f.R, f.t, config.model)
+    every = around if tested is scan else Neighbours(scan, config, sight=False)  # the full fits see every point
+    fitting = [ModelFitting(every.points(f, config.context_mm, exact=True), f.R, f.t, config.model)
                for f in finalists]
     if 0 < config.screen_iterations < config.model.iterations and config.screened < len(finalists):
-        ranked = rank_placements([g.run(config.screen_iterations).result() for g in fitting], finalists, fine,
+        ranked = rank_placements([g.run(config.screen_iterations).result() for g in fitting], finalists, tested,
                                  around, sub, crown, config)
         keep = sorted(x.index for x in ranked[: config.screened])  # in the finalists' order (ties stay as they were)
         fitting, finalists = [fitting[i] for i in keep], [finalists[i] for i in keep]
-    ranked = rank_placements([g.run().result() for g in fitting], finalists, fine, around, sub, crown, config)
+    ranked = rank_placements([g.run().result() for g in fitting], finalists, tested, around, sub, crown, config)
     fit, (protrusion, dome), (_, seen) = ranked[0].fit, ranked[0].heights, ranked[0].seen
     if not ranked[0].face_shaped:
         if fit.inlier_fraction < config.min_inliers:
@@ -578,11 +578,11 @@ class Neighbours:
     """The scan's points by their (x, y), built once for all placements of a scan: the lines of sight of
     `seen_share`, and the points near a placement's nose for the tests that look at those only."""
 
-    def __init__(self, scan: FaceScan, config: DetectConfig):
+    def __init__(self, scan: FaceScan, config: DetectConfig, sight: bool = True):
         from scipy.spatial import cKDTree
 
         self.scan = scan
-        self.tree = cKDTree(scan.points[:, :2])
+        self.tree = cKDTree(scan.points[:, :2]) if sight else None  # for `seen_share` (not needed: `sight` False)
         self.balls = BallIndex(scan.points)
         self.reach = config.seen_radius_px * scan.resolution()
         self.outline = config.seen_outline_px * scan.resolution()

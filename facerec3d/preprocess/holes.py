@@ -4,13 +4,14 @@ Holes are the groups of missing range-image pixels enclosed by valid ones
 (eyes, specular dropouts, an open mouth), once gaps of a pixel or two in
 their rim are sealed; missing pixels connected to the outside of the face
 are the boundary and stay missing. Each hole's X, Y and Z images are
-filled by the thin plate through the valid pixels around it (the surface of least bending; or, as before, by cubic
-Clough–Tocher interpolation over a ring of them).
+filled by cubic (Clough–Tocher) interpolation over a ring of valid pixels around it, or by the thin plate through
+them (the surface of least bending; `HoleConfig.interpolation`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from scipy import ndimage
@@ -25,12 +26,14 @@ class HoleConfig:
 
     max_area_mm2: float = 2000.0  # larger enclosed holes are left open
     seal_px: int = 2  # gaps in the rim this wide (scattered dropouts) do not open a hole to the outside
-    interpolation: str = "thin-plate"  # "thin-plate": the surface of least bending through the pixels around each
-    #   hole (`_thin_plate`, one sparse solve; the default since 2026-12-06: on the generator's dropouts 0.42 mm RMS
-    #   from the true surface against the cubic's 0.68, an FRGC-size scan's holes in 7 ms instead of 45);
-    #   "cubic": Clough–Tocher interpolation over a ring of valid pixels (scipy's griddata; the default before)
+    interpolation: str = "cubic"  # "cubic": Clough–Tocher interpolation over a ring of valid pixels (scipy's
+    #   griddata; the chapter's cubic interpolation, §8.5.3). "thin-plate": the surface of least bending through the pixels around each
+    #   hole (`_thin_plate`, one sparse solve): nearer the generator's true surface (0.42 mm RMS on its dropouts
+    #   against 0.68) and an FRGC-size scan's holes in ~7 ms instead of ~45, but not the default: on 2026-12-06 it
+    #   cost one probe of 45 on kinect-v2-outside and one of 237 on the rap3df-2019 held-out half (docs/benchmarks.md)
     ring_px: int = 3  # "cubic": width of the ring of valid pixels interpolated from
     stretch: float = 0.01  # "thin-plate": weight of the membrane (stretching) energy beside the bending one
+    RETIRED: ClassVar[dict] = {"small_mm2": 0.0}  # settings files and galleries of 2026-12-06 (session 30) hold it
 
     def __post_init__(self) -> None:
         if self.interpolation not in ("thin-plate", "cubic"):
