@@ -172,3 +172,16 @@ def test_a_fine_scan_is_tested_on_every_second_row_and_column(monkeypatch):
         assert seen == [(view.n_points, True)], seen
         assert np.linalg.norm(coarse.nose_tip - truth) <= 4.0
         assert np.linalg.norm(coarse.nose_tip - fine.nose_tip) <= 1.0
+
+
+def test_settings_made_with_another_nose_proposer_model_are_refused():
+    """A fingerprint (gallery store, cached face) records the proposer model's SHA-256: it reads back with the model
+    the settings name now, and one made with another model is refused, naming the file and both digests."""
+    import json
+
+    config = PreprocessConfig()
+    data = json.loads(config.fingerprint())
+    assert PreprocessConfig.from_dict(json.loads(config.fingerprint()), "store.db") == config
+    data["detect"]["proposer_sha256"] = "0" * 64
+    with pytest.raises(ValueError, match=r"store\.db: made with another nose proposer model \(SHA-256 000000000000"):
+        PreprocessConfig.from_dict(data, "store.db")

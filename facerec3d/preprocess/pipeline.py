@@ -119,10 +119,10 @@ class PreprocessConfig:
         if made_with is not None:
             data = {**data, "detect": {k: v for k, v in detect.items() if k != "proposer_sha256"}}
         config = from_dict(cls, data, source)
-        if made_with is not None and config.detect.proposer and made_with != proposer(config.detect.proposer).sha256:
+        model = proposer(config.detect.proposer) if made_with is not None and config.detect.proposer else None
+        if model is not None and made_with != model.sha256:
             raise ValueError(f"{source}: made with another nose proposer model (SHA-256 {str(made_with)[:12]}..., "
-                             f"{proposer(config.detect.proposer).path}'s is "
-                             f"{proposer(config.detect.proposer).sha256[:12]}...)")
+                             f"{model.path}'s is {model.sha256[:12]}...)")
         return config
 
     @classmethod
