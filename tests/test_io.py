@@ -115,6 +115,23 @@ def test_gzip_recognised_by_content_and_scan_id_drops_both_suffixes(tmp_path, ca
     assert_same_grid_scan(cap, load_scan(tmp_path / "plain.abs"))
 
 
+@pytest.mark.parametrize("damage", ["truncated", "flipped", "crc"])
+def test_a_damaged_abs_gz_is_one_clear_error(tmp_path, cap, damage):
+    """A `.abs.gz` cut short, with a corrupt deflate stream or a wrong checksum is refused with one line naming the
+    file (whichever inflater reads it: python-isal's or the standard library's)."""
+    save_scan(cap, tmp_path / "good.abs.gz")
+    data = bytearray((tmp_path / "good.abs.gz").read_bytes())
+    if damage == "truncated":
+        data = data[: len(data) // 2]
+    elif damage == "flipped":
+        data[20:36] = b"\xff" * 16  # just past the header and the name "good.abs": no valid deflate block
+    else:
+        data[-8] ^= 0xFF  # the CRC-32 of the trailer
+    (tmp_path / "bad.abs.gz").write_bytes(bytes(data))
+    with pytest.raises(ScanFormatError, match=r"bad\.abs\.gz: corrupt or truncated gzip data \("):
+        load_scan(tmp_path / "bad.abs.gz")
+
+
 def test_full_size_abs_loads_fast(tmp_path):
     scan = cap_image(480, 640, invalid=())
     save_scan(scan, tmp_path / "big.abs")

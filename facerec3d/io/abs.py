@@ -14,6 +14,12 @@ import gzip
 import zlib
 from pathlib import Path
 
+try:  # python-isal's igzip inflates the same files ~2.5x faster (an FRGC-size .abs.gz: 26 -> 10 ms)
+    from isal.igzip import GzipFile as _GzipReader
+    from isal.igzip_lib import IsalError as _InflateError
+except ImportError:  # pragma: no cover - isal is a dependency; the standard library does the same, slower
+    _GzipReader, _InflateError = gzip.GzipFile, zlib.error
+
 import numpy as np
 from numba import njit
 
@@ -86,7 +92,7 @@ def read_abs(path: str | Path) -> FaceScan:
     with open_binary(path) as raw:
         gz = raw.read(2) == GZIP_MAGIC  # trust the content, not the name
         raw.seek(0)
-        f = gzip.GzipFile(fileobj=raw) if gz else raw
+        f = _GzipReader(fileobj=raw) if gz else raw
         try:
             header = [f.readline(MAX_HEADER_LINE) for _ in range(3)]
             if not header[2].endswith(b"\n"):
@@ -94,7 +100,7 @@ def read_abs(path: str | Path) -> FaceScan:
             rows, cols = _parse_header(path, header)
             n = check_grid_size(path, rows, cols)
             flags, xyz = _read_body(path, f, n, f"{rows}×{cols}")
-        except (EOFError, zlib.error, gzip.BadGzipFile) as e:
+        except (EOFError, zlib.error, _InflateError, gzip.BadGzipFile) as e:
             raise ScanFormatError(path, f"corrupt or truncated gzip data ({e})") from None
     xyz = np.moveaxis(xyz.reshape(3, rows, cols), 0, -1)
     return grid_scan(path, xyz, flags.reshape(rows, cols))
