@@ -101,9 +101,9 @@ def test_filled_holes_match_the_true_surface():
 
 
 def test_holes_filled_by_the_thin_plate_lie_on_the_true_surface():
-    """The thin-plate fill (`HoleConfig.interpolation`) puts the generator's dropouts (discs 1-3 mm across, and 4-10 mm) on its clean
-    surface, nearer than the cubic interpolation over a ring does; and a fill that drops the bending energy (a
-    membrane, which flattens each hole towards its rim) lies farther from it on the larger holes."""
+    """The thin-plate fill (`HoleConfig.interpolation`) puts the generator's dropouts (discs 1-3 mm across, and
+    4-10 mm) on its clean surface, nearer than the cubic interpolation over a ring does; and a fill that drops the
+    bending energy (a membrane, which flattens each hole towards its rim) lies farther from it on the larger holes."""
     from facerec3d.preprocess.holes import HoleConfig
 
     for radius, bound in (((0.5, 1.5), 0.3), ((2.0, 5.0), 0.6)):

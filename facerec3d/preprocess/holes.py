@@ -27,10 +27,11 @@ class HoleConfig:
     max_area_mm2: float = 2000.0  # larger enclosed holes are left open
     seal_px: int = 2  # gaps in the rim this wide (scattered dropouts) do not open a hole to the outside
     interpolation: str = "cubic"  # "cubic": Clough–Tocher interpolation over a ring of valid pixels (scipy's
-    #   griddata; the chapter's cubic interpolation, §8.5.3). "thin-plate": the surface of least bending through the pixels around each
-    #   hole (`_thin_plate`, one sparse solve): nearer the generator's true surface (0.42 mm RMS on its dropouts
-    #   against 0.68) and an FRGC-size scan's holes in ~7 ms instead of ~45, but not the default: on 2026-12-06 it
-    #   cost one probe of 45 on kinect-v2-outside and one of 237 on the rap3df-2019 held-out half (docs/benchmarks.md)
+    #   griddata; the chapter's cubic interpolation). "thin-plate": the surface of least bending through the pixels
+    #   around each hole (`_thin_plate`, one sparse solve): nearer the generator's true surface (0.42 mm RMS on its
+    #   dropouts against 0.68) and an FRGC-size scan's holes in ~7 ms instead of ~45, but not the default: on
+    #   2026-12-06 it cost one probe of 45 on kinect-v2-outside and one of 237 on the rap3df-2019 held-out half
+    #   (docs/benchmarks.md; examples/preprocess-thin-plate.toml)
     ring_px: int = 3  # "cubic": width of the ring of valid pixels interpolated from
     stretch: float = 0.01  # "thin-plate": weight of the membrane (stretching) energy beside the bending one
     RETIRED: ClassVar[dict] = {"small_mm2": 0.0}  # settings files and galleries of 2026-12-06 (session 30) hold it
@@ -102,12 +103,11 @@ def _thin_plate_fill(xyz: np.ndarray, valid: np.ndarray, holes: np.ndarray, stre
 
 def _thin_plate(xyz: np.ndarray, valid: np.ndarray, wanted: np.ndarray, stretch: float) -> np.ndarray:
     """(n, 3) X, Y and Z at the `wanted` pixels (row-major order; each group of them borders a valid pixel)
-    minimising the discrete thin-plate (bending)
-    energy Σ (Δu)² over every pixel whose 5-point Laplacian Δ lies on known or wanted pixels and touches a wanted
-    one, plus `stretch` × the membrane energy Σ (u_p − u_q)² over the edges from wanted pixels to their wanted or
-    valid 4-neighbours, the valid pixels fixed (least squares, one sparse solve; cf. biharmonic inpainting). The
-    membrane term holds pixels that no whole Laplacian reaches (a gap in a hole's rim) and keeps the solve well
-    posed."""
+    minimising the discrete thin-plate (bending) energy Σ (Δu)² over every pixel whose 5-point Laplacian Δ lies on
+    valid or wanted pixels and touches a wanted one, plus `stretch` × the membrane energy Σ (u_p − u_q)² over the
+    edges from wanted pixels to their wanted or valid 4-neighbours, the valid pixels fixed (least squares, one sparse
+    solve; cf. biharmonic inpainting). The membrane term holds pixels that no whole Laplacian reaches (a gap in a
+    hole's rim) and keeps the solve well posed."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.linalg import spsolve
 
