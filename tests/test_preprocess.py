@@ -693,3 +693,19 @@ def test_the_thin_plate_fills_a_tilted_plane_exactly_and_a_hole_touching_the_fac
     assert np.abs(values[rest] - truth[rest]).max() < 1e-6
     assert np.isfinite(values).all()
     assert np.abs(values[corner] - xyz[3, 3]).max() < 1e-12  # its nearest valid pixel
+
+
+def test_holes_are_filled_by_the_thin_plate_on_fine_scans_and_cubically_on_coarse_ones():
+    """`HoleConfig.interpolation = "auto"` (the default): a 0.75 mm laser face's holes get the thin plate's values, a
+    Kinect v2 face's (~3 mm pixels) the cubic interpolation's, to the bit."""
+    from facerec3d.datasets.synthetic import SENSOR_PROFILES
+    from facerec3d.preprocess.holes import HoleConfig
+
+    for sensor, expected in (("frgc", "thin-plate"), ("kinect-v2", "cubic")):
+        s = quick_scan(1, seed=1, scanner=SENSOR_PROFILES[sensor], n_holes=6, hole_radius_mm=(3.0, 6.0))
+        face = crop_sphere(s.scan, s.landmarks["nose_tip"], 80.0)
+        filled = fill_holes(face)
+        assert filled.n_points > face.n_points, sensor
+        for name in ("thin-plate", "cubic"):
+            same = np.array_equal(filled.points, fill_holes(face, HoleConfig(interpolation=name)).points)
+            assert same == (name == expected), (sensor, name, face.resolution())

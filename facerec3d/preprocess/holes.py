@@ -4,8 +4,8 @@ Holes are the groups of missing range-image pixels enclosed by valid ones
 (eyes, specular dropouts, an open mouth), once gaps of a pixel or two in
 their rim are sealed; missing pixels connected to the outside of the face
 are the boundary and stay missing. Each hole's X, Y and Z images are
-filled by cubic (Clough–Tocher) interpolation over a ring of valid pixels around it, or by the thin plate through
-them (the surface of least bending; `HoleConfig.interpolation`).
+filled by the thin plate through the valid pixels around it (the surface of least bending) on a fine (laser) scan,
+by cubic (Clough–Tocher) interpolation over a ring of them on a coarser one (`HoleConfig.interpolation`).
 """
 
 from __future__ import annotations
@@ -26,19 +26,22 @@ class HoleConfig:
 
     max_area_mm2: float = 2000.0  # larger enclosed holes are left open
     seal_px: int = 2  # gaps in the rim this wide (scattered dropouts) do not open a hole to the outside
-    interpolation: str = "cubic"  # "cubic": Clough–Tocher interpolation over a ring of valid pixels (scipy's
+    interpolation: str = "auto"  # "cubic": Clough–Tocher interpolation over a ring of valid pixels (scipy's
     #   griddata; the chapter's cubic interpolation). "thin-plate": the surface of least bending through the pixels
     #   around each hole (`_thin_plate`, one sparse solve): nearer the generator's true surface (0.42 mm RMS on its
-    #   dropouts against 0.68) and an FRGC-size scan's holes in ~7 ms instead of ~45, but not the default: on
-    #   2026-12-06 it cost one probe of 45 on kinect-v2-outside and one of 237 on the rap3df-2019 held-out half
-    #   (docs/benchmarks.md; examples/preprocess-thin-plate.toml)
+    #   dropouts against 0.68) and an FRGC-size scan's holes in ~7 ms instead of ~45. "auto" (since 2026-12-06): the
+    #   thin plate on scans finer than `fine_mm` (laser scans, whose hundreds of dropouts make the cubic's
+    #   triangulation slow; no accuracy figure moved there), the cubic on coarser ones (depth cameras, with few
+    #   holes; the thin plate cost one probe of 45 on kinect-v2-outside there: docs/benchmarks.md)
+    fine_mm: float = 1.5  # "auto": the pitch (the face's `resolution`) below which the thin plate fills
     ring_px: int = 3  # "cubic": width of the ring of valid pixels interpolated from
     stretch: float = 0.01  # "thin-plate": weight of the membrane (stretching) energy beside the bending one
     RETIRED: ClassVar[dict] = {"small_mm2": 0.0}  # settings files and galleries of 2026-12-06 (session 30) hold it
 
     def __post_init__(self) -> None:
-        if self.interpolation not in ("thin-plate", "cubic"):
-            raise ValueError(f"interpolation must be \"thin-plate\" or \"cubic\", not {self.interpolation!r}")
+        if self.interpolation not in ("auto", "thin-plate", "cubic"):
+            raise ValueError(f"interpolation must be \"auto\", \"thin-plate\" or \"cubic\", not "
+                             f"{self.interpolation!r}")
         if not self.stretch > 0:
             raise ValueError(f"stretch must be > 0, not {self.stretch}")
 
@@ -151,11 +154,12 @@ def fill_holes(scan: FaceScan, config: HoleConfig = HoleConfig()) -> FaceScan:
     if not scan.n_points:
         return scan
     xyz, valid, lo = _window(scan, _margin(config))
-    holes = _holes(valid, scan.resolution() ** 2, config)
+    pitch = scan.resolution()
+    holes = _holes(valid, pitch**2, config)
     if not holes.any():
         return scan
     at = np.argwhere(holes)
-    if config.interpolation == "thin-plate":
+    if config.interpolation == "thin-plate" or (config.interpolation == "auto" and pitch < config.fine_mm):
         values = _thin_plate_fill(xyz, valid, holes, config.stretch)
     else:  # cubic over the ring, interpolated in the scan's grid (+ lo): the pixels it always saw, to the bit
         ring = ndimage.binary_dilation(holes, iterations=config.ring_px) & valid
