@@ -75,8 +75,13 @@ def front_triangles(points, tris, x0, y0, res, rows, cols):  # pragma: no cover 
 
 def rasterize_depth(points: np.ndarray, triangles: np.ndarray, config: ResampleConfig = ResampleConfig()) -> np.ndarray:
     """(size, size) depth map z (mm) of a triangle mesh seen from +z; NaN where no surface."""
+    return _depth_image(points, triangles, *_frontal_grid(config))
+
+
+def _frontal_grid(config: ResampleConfig) -> tuple[float, float, float, int, int]:
+    """(x0, y0, cell, rows, cols) of the frontal grid: its first cell's corner at (−half width, +half width)."""
     w = config.half_width_mm
-    return _depth_image(points, triangles, -w, w, config.resolution_mm, config.size, config.size)
+    return -w, w, config.resolution_mm, config.size, config.size
 
 
 def _depth_image(points, triangles, x0: float, y0: float, res: float, rows: int, cols: int) -> np.ndarray:
@@ -113,8 +118,8 @@ def resample(scan: FaceScan, config: ResampleConfig = ResampleConfig()) -> FaceS
     nearest it, in barycentric terms)."""
     if scan.grid is None:
         raise ValueError("resampling needs a range-image grid (see preprocess.gridify for point clouds)")
-    tris, w = scan.triangles(), config.half_width_mm
-    z, tri, bary = _rasterised(scan.points, tris, -w, w, config.resolution_mm, config.size, config.size)
+    tris = scan.triangles()
+    z, tri, bary = _rasterised(scan.points, tris, *_frontal_grid(config))
     out = depth_to_scan(z, config, like=scan)
     if scan.provenance is not None and scan.provenance.any() and out.n_points:
         r, c = out.grid[:, 0], out.grid[:, 1]
