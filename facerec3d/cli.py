@@ -1149,7 +1149,8 @@ def keys_remove(name, keys_file):
 @main.group()
 def cache():
     """The preprocessing cache: faces already preprocessed, reused by evaluate, enroll, identify and verify (keyed
-    by file path, size, modification time and the settings, so a changed file or setting is computed again)."""
+    by file path, size, modification time, the settings and the preprocessing code, so a changed file, setting or
+    facerec3d version is computed again)."""
 
 
 _CACHE_DIR_OPTION = click.option("--cache", "folder", type=click.Path(file_okay=False),

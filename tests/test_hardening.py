@@ -36,7 +36,8 @@ from facerec3d.matching.checks import check_template
 from facerec3d.matching.icp import ICPMatcher
 from facerec3d.matching.registry import make_matcher
 from facerec3d.preprocess import PreprocessConfig
-from facerec3d.preprocess.batch import cache_key, preprocess_file, preprocess_files
+from facerec3d.preprocess import batch
+from facerec3d.preprocess.batch import cache_key, code_stamp, preprocess_file, preprocess_files
 from tests.conftest import cap_image
 
 SMALL = ScannerConfig(rows=240, cols=320, focal_px=500.0)
@@ -333,6 +334,37 @@ def test_a_damaged_cache_entry_is_recomputed(data, tmp_path):
     entries[0].write_bytes(entries[0].read_bytes()[:1000])
     r = enroll(scans, data | {"cache": cache}, tmp_path / "g.sqlite", "--jobs", "2")
     assert r.exit_code == 0 and "2 enrolled" in r.output, r.output
+
+
+def test_faces_cached_by_another_version_of_the_code_are_made_again(data, tmp_path, monkeypatch):
+    cache = tmp_path / "cache"
+    scan = data["scans"][0]
+    first = preprocess_file(scan, cache=cache)
+    assert first.face is not None and preprocess_file(scan, cache=cache).cached
+    monkeypatch.setattr(batch, "code_stamp", lambda: "another version")
+    again = preprocess_file(scan, cache=cache)
+    assert again.face is not None and not again.cached  # made again, not the old version's face
+    np.testing.assert_array_equal(again.face.points, first.face.points)
+    assert preprocess_file(scan, cache=cache).cached
+
+
+def test_the_code_stamp_follows_the_preprocessing_code_only(tmp_path):
+    package = Path(batch.__file__).resolve().parent.parent
+    copy = tmp_path / "facerec3d"
+    for pattern in (*batch.CODE, "matching/*.py"):
+        for f in package.glob(pattern):
+            (copy / f.relative_to(package)).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(f, copy / f.relative_to(package))
+    assert code_stamp(copy) == code_stamp(package)
+    stamp = lambda: code_stamp.__wrapped__(copy)  # not the per-process cache
+    (copy / "matching" / "icp.py").write_text("# a matcher changed: the same faces\n")
+    assert stamp() == code_stamp(package)
+    for changed in ("preprocess/holes.py", "io/abs.py", "scan.py", "facemodel/data/ict_facekit.npz"):
+        before = (copy / changed).read_bytes()
+        (copy / changed).write_bytes(before + b"\n")
+        assert stamp() != code_stamp(package), changed
+        (copy / changed).write_bytes(before)
+    assert stamp() == code_stamp(package)
 
 
 def test_cache_entries_are_written_atomically(data, tmp_path, monkeypatch):
