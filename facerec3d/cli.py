@@ -803,22 +803,28 @@ def gallery_list(store):
 
 
 @gallery.command("remove")
-@click.argument("ident")
+@click.argument("ident", required=False)
+@click.option("--entry", type=int, help="Remove only the entry of this id (the first column of `gallery G list`).")
 @click.pass_obj
 @friendly
-def gallery_remove(store, ident):
-    """Remove subject IDENT's entries (or else the entry of scan IDENT)."""
-    if (client := _remote_gallery()) is not None:
-        with client:
-            n = len(client.remove(ident)["removed"])
-        click.echo(f"removed {n} entr{'y' if n == 1 else 'ies'}")
-        return
+def gallery_remove(store, ident, entry):
+    """Remove subject IDENT's entries (or else the entry of scan IDENT, when one subject has it), or one entry by its
+    id (--entry)."""
+    from facerec3d.errors import InputError
     from facerec3d.gallery.store import GalleryError, GalleryStore
 
+    if (ident is None) == (entry is None):
+        raise InputError("gallery remove: give a subject or scan id, or --entry ID (not both)")
+    if (client := _remote_gallery()) is not None:
+        with client:
+            n = len((client.remove(ident) if entry is None else client.remove_entry(entry))["removed"])
+        click.echo(f"removed {n} entr{'y' if n == 1 else 'ies'}")
+        return
     with GalleryStore(store) as s:
-        n = s.remove(ident)
+        n = s.remove(ident, entry)
     if not n:
-        raise GalleryError(f"{store}: no subject or scan {ident!r}")
+        raise GalleryError(f"{store}: no entry {entry}" if entry is not None else
+                           f"{store}: no subject or scan {ident!r}")
     click.echo(f"removed {n} entr{'y' if n == 1 else 'ies'}")
 
 

@@ -228,6 +228,10 @@ class Client:
 
         return self._call("DELETE", f"/v1/subjects/{quote(ident, safe='')}")
 
+    def remove_entry(self, entry: int) -> dict:
+        """Remove the entry of id ENTRY (`entries()` lists them): {"removed": [entry], ...}."""
+        return self._call("DELETE", f"/v1/entries/{int(entry)}")
+
     def stats(self) -> dict:
         return self._call("GET", "/v1/stats")
 

@@ -73,6 +73,39 @@ def test_round_trip_settings_and_removal(tmp_path):
         GalleryStore(tmp_path / "junk.sqlite")
 
 
+def test_a_scan_name_of_several_people_is_never_removed_as_all_of_them(tmp_path):
+    """Every person a depth camera enrols has a `front_1`: removing by that name is refused (nothing removed) and
+    names the way to remove one entry, by its id (`--entry`), which is also what a damaged entry's message says."""
+    path = tmp_path / "g.sqlite"
+    with GalleryStore(path, create=True) as store:
+        store.bind(PreprocessConfig(), ICPMatcher())
+        for i in range(3):
+            t = big_template(i)
+            store.add(Template(t.subject, "front_1", t.method, t.arrays, t.attrs), f"/data/s{i}/front_1.png")
+        ids = [e.id for e in store.entries()]
+        with pytest.raises(GalleryError, match=r"scan 'front_1' names 3 entries of 3 subjects.*remove --entry ID"):
+            store.remove("front_1")
+        assert [e.id for e in store.entries()] == ids
+        assert store.remove(entry=ids[1]) == 1 and store.remove(entry=ids[1]) == 0
+        assert [e.subject for e in store.entries()] == ["s0", "s2"]
+        assert store.remove("s2") == 1 and store.remove("front_1") == 1 and store.entries() == []
+    with GalleryStore(path) as store:
+        store.add(big_template(5), "/data/5.abs")
+        store.add(big_template(6), "/data/6.abs")
+    run = lambda *a: CliRunner().invoke(main, ["gallery", str(path), "remove", *a])
+    for bad in ((), ("s5", "--entry", "1")):
+        r = run(*bad)
+        assert r.exit_code == 2 and "give a subject or scan id, or --entry ID" in r.output, r.output
+    with GalleryStore(path) as store:
+        first = store.entries()[0].id
+    r = run("--entry", str(first))
+    assert r.exit_code == 0 and "removed 1 entry" in r.output, r.output
+    r = run("--entry", str(first))
+    assert r.exit_code == 2 and f"no entry {first}" in r.output, r.output
+    with GalleryStore(path) as store:
+        assert [e.subject for e in store.entries()] == ["s6"]
+
+
 def test_a_gallery_with_no_entries_takes_new_settings(tmp_path):
     """cal19 item 3: a store whose first enrolment failed (no entry, a failure recorded) takes another enrolment's
     settings, dropping the old ones' learnt arrays and threshold; a store object still on the old settings can add

@@ -228,7 +228,7 @@ def test_flipped_template_bytes_are_refused_naming_the_entry(tmp_path):
     with GalleryStore(path) as store:
         assert len(store.templates(store.entries()[:1])) == 1  # the sound entry still reads
         with pytest.raises(GalleryError, match=r"entry 2 \(subject s1, scan scan1, /data/1.abs\) is damaged: "
-                                               r"array 'points': checksum mismatch"):
+                                               r"array 'points': checksum mismatch.*remove --entry 2\)"):
             store.templates()
     db = sqlite3.connect(path)  # a damaged subject (identity) is refused too
     db.execute("UPDATE entries SET subject = 's0' WHERE id = 2")

@@ -184,6 +184,23 @@ def test_enrol_identify_verify_remove(setup):
         with pytest.raises(ServiceError) as e:
             c.remove("s7")
         assert e.value.status == 404
+        # two people's scans of one name (a depth camera's front_1): the name alone removes neither, an id removes one
+        twins = []
+        for subject in (10, 11):
+            (tmp / f"t{subject}").mkdir(exist_ok=True)
+            twins.append(tmp / f"t{subject}" / "front_1.npz")
+            twins[-1].write_bytes(probe_file(tmp, subject, 1).read_bytes())
+        ids = [c.enrol(f, subject=f"s{k}")["id"] for f, k in zip(twins, (10, 11))]
+        with pytest.raises(ServiceError) as e:
+            c.remove("front_1")
+        assert e.value.status == 409 and "2 subjects" in e.value.reason and "/v1/entries/" in e.value.reason
+        assert {"s10", "s11"} <= {s["subject"] for s in c.subjects()}
+        assert c.remove_entry(ids[0])["removed"] == [ids[0]]
+        assert {s["subject"] for s in c.subjects()} >= {"s11"} and "s10" not in {s["subject"] for s in c.subjects()}
+        with pytest.raises(ServiceError) as e:
+            c.remove_entry(ids[0])
+        assert e.value.status == 404
+        assert c.remove("front_1")["removed"] == [ids[1]]  # now one subject's: removed
         st = c.stats()
         assert st["entries"] == SUBJECTS and st["method"] == "icp" and len(st["preprocess_fingerprint"]) == 16
         assert "failures_to_enrol" in st and st["queue"]["capacity"] == 4

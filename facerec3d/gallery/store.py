@@ -568,19 +568,23 @@ class GalleryStore:
                 check_template(template)
             except ValueError as error:
                 raise GalleryError(f"{self.path}: entry {e.id} (subject {e.subject}, scan {e.scan_id}, {e.source}) is "
-                                   f"damaged: {what}: {error}; remove it (gallery {self.path} remove {e.scan_id}) "
+                                   f"damaged: {what}: {error}; remove it (gallery {self.path} remove --entry {e.id}) "
                                    "and enrol its scan again") from None
             out.append(template)
         return out
 
     @_sqlite_errors
-    def remove(self, ident: str) -> int:
-        """Delete the entries of subject `ident`, or else the entry with scan id `ident`; returns how many."""
+    def remove(self, ident: str | None = None, entry: int | None = None) -> int:
+        """Delete the entries `removal` picks (subject `ident`'s, or else the scan `ident`, or else entry id `entry`);
+        returns how many (0 when none matches); GalleryError when `ident` is a scan id of several subjects."""
         with self._transaction():
-            n = self._db.execute("DELETE FROM entries WHERE subject = ?", (ident,)).rowcount
-            if n == 0:
-                n = self._db.execute("DELETE FROM entries WHERE scan_id = ?", (ident,)).rowcount
-        return n
+            try:
+                ids = [e.id for e in removal(self.entries(), ident, entry)]
+            except ValueError as e:
+                raise GalleryError(f"{self.path}: {e} (gallery {self.path} remove --entry ID; the ids: gallery "
+                                   f"{self.path} list)") from None
+            self._db.executemany("DELETE FROM entries WHERE id = ?", [(i,) for i in ids])
+        return len(ids)
 
     @_sqlite_errors
     def failures(self) -> list[tuple[str, str]]:
@@ -596,6 +600,19 @@ class GalleryStore:
                 "file_bytes": self.path.stat().st_size, "failures_to_enrol": len(self.failures()),
                 "method": self._meta("method"), "options": json.loads(self._meta("options") or "null"),
                 "threshold": self.threshold()}
+
+
+def removal(entries: Sequence[Entry], ident: str | None, entry: int | None) -> list[Entry]:
+    """The entries a removal means: with `entry`, the entry of that id; else subject `ident`'s entries, or else those
+    of scan id `ident` when they are one subject's. A scan id shared by several subjects (every depth-camera person
+    has a `front_1`) is refused (ValueError, the reason), never taken as all of them."""
+    if entry is not None:
+        return [e for e in entries if e.id == entry]
+    chosen = [e for e in entries if e.subject == ident] or [e for e in entries if e.scan_id == ident]
+    if len(subjects := {e.subject for e in chosen}) > 1:
+        raise ValueError(f"scan {ident!r} names {len(chosen)} entries of {len(subjects)} subjects; remove one by its "
+                         "entry id")
+    return chosen
 
 
 def _differences(a, b, prefix: str = "") -> Iterator[str]:

@@ -201,7 +201,7 @@ class Lane:
 #: the lane of each endpoint that does scan work or changes the gallery, by (method, endpoint label)
 LANES = {("POST", f"{API}/identify"): "query", ("POST", f"{API}/verify"): "query",
          ("POST", f"{API}/enrol"): "write", ("DELETE", f"{API}/subjects/{{ident}}"): "write",
-         ("POST", f"{API}/calibrate"): "write"}
+         ("DELETE", f"{API}/entries/{{entry}}"): "write", ("POST", f"{API}/calibrate"): "write"}
 
 
 class FailedAuthLog:
@@ -293,6 +293,8 @@ def route_of(method: str, path: str) -> tuple[str, str | None]:
         return path, None
     if path.startswith(f"{API}/subjects/"):
         return f"{API}/subjects/{{ident}}", "admin"
+    if path.startswith(f"{API}/entries/"):
+        return f"{API}/entries/{{entry}}", "admin"
     if path.startswith(f"{API}/") or path == "/metrics":
         return "other", "any"
     if path in ("/docs", "/openapi.json", "/redoc", "/docs/oauth2-redirect"):
@@ -639,9 +641,9 @@ def _calibrate(job: Job, live: LiveGallery, received: list[Received], subjects: 
     return {"threshold": record, "gallery_version": live.version}
 
 
-def _remove(job: Job, live: LiveGallery, ident: str, who: dict) -> dict:
+def _remove(job: Job, live: LiveGallery, ident: str | None, who: dict, entry: int | None = None) -> dict:
     job.commit()
-    removed = live.remove(ident, who)
+    removed = live.remove(ident, who, entry=entry)
     return {"removed": [e.id for e in removed], "subjects": sorted({str(e.subject) for e in removed}),
             "gallery_version": live.version}
 
@@ -799,8 +801,15 @@ def create_app(service: Service):
     @app.delete(f"{API}/subjects/{{ident}}", summary="Remove a subject's entries, or else a scan's (scope admin)")
     async def remove(request: Request, ident: str):
         """Removes subject IDENT's entries, or else the entries of scan id IDENT (as `facerec3d gallery remove`);
-        404 when neither is enrolled. Answered after the removal is committed."""
+        404 when neither is enrolled, 409 when IDENT is a scan id of several subjects (remove one entry by its id).
+        Answered after the removal is committed."""
         return await service.run(request, _remove, live, ident, service.who(request))
+
+    @app.delete(f"{API}/entries/{{entry}}", summary="Remove one entry by its id (scope admin)")
+    async def remove_entry(request: Request, entry: int):
+        """Removes the entry of id ENTRY (the ids: GET /v1/entries; as `facerec3d gallery remove --entry`); 404 when
+        there is none. Answered after the removal is committed."""
+        return await service.run(request, _remove, live, None, service.who(request), entry)
 
     @app.get(f"{API}/entries", summary="Every entry and the failures to enrol (scope admin)")
     async def entries():

@@ -45,7 +45,7 @@ from facerec3d.errors import FaceRec3DError
 from facerec3d.gallery.cascade import CascadeConfig, check_cascadable
 from facerec3d.gallery.engine import Engine, Probe, ShardedGallery
 from facerec3d.gallery.service import gallery_threshold
-from facerec3d.gallery.store import AlreadyEnrolled, Entry, GalleryError, GalleryStore
+from facerec3d.gallery.store import AlreadyEnrolled, Entry, GalleryError, GalleryStore, removal
 from facerec3d.matching.base import rank
 from facerec3d.matching.registry import make_matcher
 from facerec3d.preprocess.pipeline import PreprocessConfig
@@ -53,7 +53,7 @@ from facerec3d.server.jobs import ready
 
 
 class Conflict(FaceRec3DError):
-    """The scan is already enrolled (`entry` is its entry)."""
+    """The scan is already enrolled (`entry` is its entry), or a removal names entries of several subjects."""
 
     def __init__(self, message: str, entry: Entry | None):
         super().__init__(message)
@@ -375,24 +375,27 @@ class LiveGallery:
         self.audit.write("calibrate", value=record["value"], rule=record["rule"], data=record["data"],
                          scans=record["scans"], **who)
 
-    def remove(self, ident: str, who: dict | None = None) -> list[Entry]:
-        """Remove subject `ident`'s entries, or else the entries of scan `ident`; returns them. `NotFound` when
-        neither exists."""
-        return self._writer.submit(self._remove, ident, who or {}).result()
+    def remove(self, ident: str | None, who: dict | None = None, entry: int | None = None) -> list[Entry]:
+        """Remove subject `ident`'s entries, or else the entries of scan `ident` (one subject's), or entry id `entry`
+        (`store.removal`); returns them. `NotFound` when none exists, `Conflict` for a scan id of several subjects."""
+        return self._writer.submit(self._remove, ident, who or {}, entry).result()
 
-    def _remove(self, ident: str, who: dict) -> list[Entry]:
+    def _remove(self, ident: str | None, who: dict, entry: int | None = None) -> list[Entry]:
         entries = self._snap.entries
-        gone = [i for i, e in enumerate(entries) if e.subject == ident] or \
-               [i for i, e in enumerate(entries) if e.scan_id == ident]
-        if not gone:
-            raise NotFound(f"no subject or scan {ident!r}")
-        n = self._store.remove(ident)
-        removed = [entries[i] for i in gone]
+        try:
+            removed = removal(entries, ident, entry)
+        except ValueError as e:
+            raise Conflict(f"{e} (DELETE /v1/entries/ID; the ids: GET /v1/entries)", None) from None
+        if not removed:
+            raise NotFound(f"no entry {entry}" if entry is not None else f"no subject or scan {ident!r}")
+        ids = {e.id for e in removed}
+        gone = [i for i, e in enumerate(entries) if e.id in ids]
+        n = self._store.remove(entry=entry) if entry is not None else self._store.remove(ident)
         if n != len(gone):  # the store was changed by another process: reload it whole
             self._reload()
         else:
             self._swap(remove=gone)
-        self.audit.write("remove", ident=ident, entries=[e.id for e in removed],
+        self.audit.write("remove", ident=ident if entry is None else f"entry {entry}", entries=[e.id for e in removed],
                          subjects=sorted({str(e.subject) for e in removed}), **who)
         return removed
 
