@@ -55,6 +55,32 @@ def test_surfaces_that_are_not_faces_fail_to_acquire(name):
         Preprocessor()(scan)
 
 
+def test_a_face_in_metres_or_without_spacing_is_one_clear_failure_and_the_batch_goes_on(tmp_path, monkeypatch):
+    """A mesh or cloud in metres (0.2 "mm" across) crashed the nose proposer, a grid whose points share one x, y
+    divided by zero: each is a failure to acquire that says why, and a batch records it and goes on."""
+    from facerec3d.datasets.frontal import frontal_face
+    from facerec3d.io import save_scan
+    from facerec3d.preprocess import batch
+
+    face = kinect_face(0)[0]
+    np.savetxt(tmp_path / "metres.xyz", face.points / 1000.0)
+    np.savetxt(tmp_path / "mm.xyz", face.points)
+    flat = np.zeros((40, 40, 3))
+    flat[..., 2] = -1000.0 + np.random.default_rng(0).normal(0.0, 50.0, (40, 40))  # depth spread, no x-y extent
+    np.save(tmp_path / "no_spacing.npy", flat)
+    files = [tmp_path / n for n in ("metres.xyz", "no_spacing.npy", "mm.xyz")]
+    out = list(batch.preprocess_files(files, jobs=1))
+    spans = f"spans only {np.ptp(face.points, axis=0).max() / 1000:.3g} mm"
+    assert spans in out[0].error and "far too small for a face" in out[0].error and "metres" in out[0].error
+    assert "no measurable spacing across the view" in out[1].error
+    assert out[2].face is not None, out[2].error  # the same face in mm is found
+    # and anything no check foresaw is that scan's failure, named, not the batch's end
+    save_scan(frontal_face(1), tmp_path / "good.npz")
+    monkeypatch.setattr(batch.Preprocessor, "__call__", lambda self, scan: 1 / 0)
+    broken = batch.preprocess_file(tmp_path / "good.npz")
+    assert broken.face is None and broken.error.startswith("internal error (ZeroDivisionError: division by zero)")
+
+
 def kinect_face(subject=0, identity_sigma=1.0, yaw=0.0, distance=1250.0, step=8.0, deformation_mm=0.0):
     """A model face seen by a Kinect-like camera (149 x 119 crop, fx 365.5) with quantised depth; ground-truth
     nose tip in scan coordinates. `identity_sigma` is the spread of the identity coefficients (the old gate

@@ -97,6 +97,10 @@ def test_cli_evaluate_and_compare(dataset, runs, tmp_path):
     assert (tmp_path / "cmp" / "compare.html").is_file()
     r = CliRunner().invoke(main, ["evaluate", str(tmp_path / "nothing-here.csv"), "--out", str(tmp_path / "x")])
     assert r.exit_code == 2
+    curves = tmp_path / "cli" / "curves.npz"  # a run's damaged curves: one line naming the file
+    curves.write_bytes(curves.read_bytes()[:200])
+    r = CliRunner().invoke(main, ["compare", str(out / "one"), str(tmp_path / "cli"), "--out", str(tmp_path / "cmp2")])
+    assert r.exit_code == 2 and f"{curves}: not a run's curves file, or a damaged one" in r.output, r.output
 
 
 @pytest.mark.slow  # a minute or more on 2 cores

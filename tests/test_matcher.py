@@ -146,5 +146,19 @@ def test_a_file_that_is_not_a_model_is_refused_by_name(tmp_path):
 
     bad = tmp_path / "model.npz"
     bad.write_bytes(b"not a zip")
-    with pytest.raises(FaceRec3DError, match="model.npz: not a facerec3d model file"):
-        load_matcher(bad)
+    with pytest.raises(FaceRec3DError, match=r"model.npz: not a facerec3d model file \(not an .npz archive\)$"):
+        load_matcher(bad)  # not numpy's advice to unpickle it
+    # a saved model damaged: truncated, or a byte of its data flipped (the zip's CRC), is one line too
+    from facerec3d.matching.icp import ICPMatcher
+    good = tmp_path / "icp.npz"
+    ICPMatcher().save(good)
+    assert load_matcher(good).name == "icp"
+    data = good.read_bytes()
+    with zipfile.ZipFile(good) as z:
+        info = max(z.infolist(), key=lambda i: i.compress_size)
+    flipped = bytearray(data)
+    flipped[info.header_offset + 30 + len(info.filename) + info.compress_size // 2] ^= 0xFF
+    for name, content in (("truncated.npz", data[: len(data) // 2]), ("flipped.npz", bytes(flipped))):
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(FaceRec3DError, match=f"{name}: not a facerec3d model file, or a damaged one"):
+            load_matcher(tmp_path / name)

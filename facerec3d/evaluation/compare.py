@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import csv
 import json
+import zipfile
+import zlib
 from collections.abc import Sequence
 from itertools import combinations
 from pathlib import Path
@@ -32,8 +34,12 @@ def _load(run_dir: Path) -> tuple[dict, dict[str, np.ndarray]]:
     curves = run_dir / "curves.npz"
     if not curves.is_file():
         return metrics, {}
-    with np.load(curves, allow_pickle=False) as z:
-        return metrics, {k: z[k] for k in z.files}
+    try:
+        with np.load(curves, allow_pickle=False) as z:
+            return metrics, {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+        raise InputError(f"{curves}: not a run's curves file, or a damaged one ({type(e).__name__}: "
+                         f"{str(e)[:200]})") from None
 
 
 def rank1_hits(run_dir: str | Path) -> dict[str, bool | None] | None:

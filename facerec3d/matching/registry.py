@@ -10,6 +10,8 @@ Each method's module is imported only when the method is used.
 from __future__ import annotations
 
 import time
+import zipfile
+import zlib
 from collections.abc import Callable, Mapping
 from os import PathLike
 from pathlib import Path
@@ -48,12 +50,19 @@ def stored_matcher(method: str, options: Mapping[str, Any] | None) -> Matcher:
 
 
 def load_matcher(path: str | PathLike) -> Matcher:
-    """A matcher saved by `Matcher.save`: its method, settings and what it learnt."""
+    """A matcher saved by `Matcher.save`: its method, settings and what it learnt; FaceRec3DError (one line) for a
+    file that is none, or a damaged one."""
     try:
+        with open(path, "rb") as f:
+            if f.read(4) != b"PK\x03\x04":  # NumPy would take it for a pickle and name an option to load it unsafely
+                raise FaceRec3DError(f"{path}: not a facerec3d model file (not an .npz archive)")
         t = Template.load(path)
         options, state = t.attrs["options"], t.attrs["state"]
-    except (OSError, ValueError, KeyError) as e:
-        raise FaceRec3DError(f"{path}: not a facerec3d model file ({e})") from None
+    except OSError as e:
+        raise FaceRec3DError(f"{path}: cannot read the model file ({e.strerror or e})") from None
+    except (ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+        raise FaceRec3DError(f"{path}: not a facerec3d model file, or a damaged one ({type(e).__name__}: "
+                             f"{str(e)[:200]})") from None
     return restore_state(stored_matcher(t.method, options), t.arrays, state,
                          lambda why: FaceRec3DError(f"{path}: not a usable {t.method} model ({why})"))
 

@@ -78,7 +78,8 @@ def cache_key(path: str | Path, config: PreprocessConfig, intrinsics: str | Path
 def preprocess_file(path: str | Path, config: PreprocessConfig = PreprocessConfig(),
                     cache: str | Path | None = None, intrinsics: str | Path | None = None) -> Outcome:
     """Load and preprocess one scan file (a depth frame with `intrinsics` when given); errors of facerec3d become a
-    failed Outcome."""
+    failed Outcome with their reason, and so does any other exception (an internal error, named), so that a batch
+    records the failure and goes on."""
     from facerec3d.io import load_scan
 
     t0 = time.perf_counter()
@@ -91,6 +92,8 @@ def preprocess_file(path: str | Path, config: PreprocessConfig = PreprocessConfi
         outcome = Outcome(str(path), Preprocessor(config)(load_scan(path, intrinsics)))
     except FaceRec3DError as e:
         outcome = Outcome(str(path), None, getattr(e, "reason", str(e)))
+    except Exception as e:  # noqa: BLE001 - a scan no check foresaw: recorded as its failure, the batch goes on
+        outcome = Outcome(str(path), None, f"internal error ({type(e).__name__}: {e}); please report it"[:500])
     if stored is not None:
         _write_cache(stored, outcome)
     return replace(outcome, seconds=time.perf_counter() - t0)

@@ -287,10 +287,19 @@ def nose_candidates(scan: FaceScan, config: DetectConfig = DetectConfig()) -> tu
 MIN_POINTS = 100  # valid points that a face needs at the least
 
 
+MIN_EXTENT_MM = 50.0  # the least a face spans (mm, the longest side of its bounding box): a face is 120-200 mm
+
+
 def check_points(scan: FaceScan) -> None:
-    """FailureToAcquire when the scan has fewer valid points than any face needs, saying how many it has."""
+    """FailureToAcquire when the scan has fewer valid points than any face needs, saying how many it has, or spans
+    less than any face does (`MIN_EXTENT_MM`: a mesh or cloud in metres, or a depth image read at the wrong scale)."""
     if scan.n_points < MIN_POINTS:
         raise FailureToAcquire(f"only {scan.n_points} valid point{'s' * (scan.n_points != 1)}", scan.meta.path)
+    lo, hi = scan.bounding_box()
+    if not (extent := float(np.max(hi - lo))) >= MIN_EXTENT_MM:
+        raise FailureToAcquire(f"the scan spans only {extent:.3g} mm, far too small for a face: facerec3d reads "
+                               "millimetres (a mesh or point cloud in metres needs scaling by 1000; a depth image, "
+                               "its depth scale in the intrinsics)", scan.meta.path)
 
 
 def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detection:

@@ -102,13 +102,17 @@ def lateral_pitch(scan: FaceScan) -> float:
 
 
 def check_surface(scan: FaceScan, sampling: Sampling, max_noise_pitches: float) -> None:
-    """FailureToAcquire when the scan's depth noise σ (`sampling.noise_mm`) exceeds `max_noise_pitches` lateral
+    """FailureToAcquire when the scan's pixels have no spacing across the view (every point at one x, y), or when
+    its depth noise σ (`sampling.noise_mm`) exceeds `max_noise_pitches` lateral
     pixel pitches: random depths (a broken sensor, a corrupt frame) rather than a surface. No depth camera comes
     near it (its σ is about one pitch or less), but every threshold of preprocessing scales with the measured
     noise, so smoothing meant for such a frame can turn random depths into a face-like surface. 0 turns it off."""
+    pitch = lateral_pitch(scan)
+    if not (np.isfinite(pitch) and pitch > 0):
+        raise FailureToAcquire(f"the {scan.n_points} points have no measurable spacing across the view (pixel pitch "
+                               f"{pitch:.3g} mm)", scan.meta.path)
     if not max_noise_pitches > 0:
         return
-    pitch = lateral_pitch(scan)
     if sampling.noise_mm > max_noise_pitches * pitch:
         raise FailureToAcquire(f"no surface: the depth noise (σ {sampling.noise_mm:.3g} mm) is "
                                f"{sampling.noise_mm / pitch:.3g} pixel pitches ({pitch:.3g} mm), a surface's at most "
