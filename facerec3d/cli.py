@@ -411,17 +411,29 @@ def _enroll_remote(server, api_key, records, jobs, preprocess_locally=False, int
                f"to enrol; {server}: {st['entries']} entries")
 
 
-def _keeps_given_threshold(kept: dict | None, where: str) -> bool:
+def _keeps_given_threshold(kept: dict | None, where: str, entries: int | None = None) -> bool:
     """Whether the gallery's threshold was calibrated on scans given for it (the user's choice, not replaced behind
     them by the calibration that follows an enrolment): then says so in one line, with how to recalibrate
-    (`facerec3d gallery WHERE calibrate ...`)."""
+    (`facerec3d gallery WHERE calibrate ...`) and, when the gallery now holds another number of `entries` than it
+    was calibrated with, that too (a fusion's scores are normalised over the gallery)."""
     from facerec3d.evaluation.calibrate import OWN_SCANS
 
     if kept is None or kept.get("data") == OWN_SCANS:
         return False
-    click.echo(f"kept the verification threshold {kept['value']:.4g} calibrated on {kept['data']} (recalibrate: "
-               f"facerec3d gallery {where} calibrate SCANS ...)")
+    then = kept.get("entries")
+    grown = (f"; calibrated when the gallery held {then} entries, it holds {entries} now"
+             if entries is not None and then is not None and then != entries else "")
+    click.echo(f"kept the verification threshold {kept['value']:.4g} calibrated on {kept['data']}{grown} "
+               f"(recalibrate: facerec3d gallery {where} calibrate SCANS ...)")
     return True
+
+
+def _stale_threshold(kept: dict | None, entries: int) -> bool:
+    """Whether a threshold the gallery calibrated on its own scans no longer covers it (an interrupted enrolment, or
+    one run with --no-calibrate, added entries after it): the next enrolment calibrates again, even adding none."""
+    from facerec3d.evaluation.calibrate import OWN_SCANS
+
+    return kept is None or (kept.get("data") == OWN_SCANS and kept.get("entries") != entries)
 
 
 def _calibrate_own_remote(client, stats, scans, subjects, intrinsics) -> None:
@@ -429,7 +441,7 @@ def _calibrate_own_remote(client, stats, scans, subjects, intrinsics) -> None:
     enrolment does on the gallery's own (FMR 1 %), unless the threshold was calibrated on scans given for it
     (kept, as locally); a calibration that fails or is refused (e.g. a key without the admin scope) is said in
     one line, the enrolment stands."""
-    if _keeps_given_threshold(stats.get("threshold"), f"--server {client.url}"):
+    if _keeps_given_threshold(stats.get("threshold"), f"--server {client.url}", stats.get("entries")):
         return
     if not scans:  # (more than 100 scans, and those a calibration would score all failed)
         click.echo("verification threshold not calibrated: none of the scans it would score is in the gallery")
@@ -610,9 +622,11 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
                 report = enroll_scans(store, records, matcher, config=config, engine=engine, cache=cache,
                                       intrinsics=intrinsics, on_result=show)
             total = store.stats()["entries"]
-        if calibrate and report.enrolled:
+        if calibrate and total:
             with GalleryStore(gallery) as store:
-                if not _keeps_given_threshold(store.threshold(), gallery):
+                kept = store.threshold()
+                if (report.enrolled or _stale_threshold(kept, total)) and not _keeps_given_threshold(kept, gallery,
+                                                                                                      total):
                     _calibrate_threshold(store, None, 0.01, engine, cache, quiet_if_impossible=True,
                                          intrinsics=intrinsics)
     click.echo(f"{report.enrolled} enrolled, {len(report.skipped)} already enrolled, {len(report.failures)} failed "

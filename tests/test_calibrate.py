@@ -10,7 +10,7 @@ from click.testing import CliRunner
 from facerec3d.cli import main
 from facerec3d.datasets.synthetic import DatasetConfig, sensor_profile, write_dataset
 from facerec3d.evaluation.calibrate import (OWN_SCANS, calibrate, calibration_scores, gallery_records,
-                                            threshold_at_fmr)
+                                            threshold_at_fmr, threshold_record)
 from facerec3d.evaluation.metrics import eer, roc
 from facerec3d.gallery.engine import Engine
 from facerec3d.gallery.service import DEFAULT_THRESHOLDS, enroll_scans, gallery_threshold, scan_records, verify_scan
@@ -137,6 +137,8 @@ def test_enrolling_more_keeps_a_threshold_calibrated_on_scans_given_for_it(kinec
     run = CliRunner().invoke(main, ["enroll", str(more), "--gallery", str(g), "--method", "icp", "--jobs", "1"])
     assert run.exit_code == 0 and "1 enrolled" in run.output, run.output
     assert "kept the verification threshold" in run.output
+    assert f"calibrated when the gallery held {chosen['entries']} entries, it holds {chosen['entries'] + 1} now" \
+        in run.output, run.output
     with GalleryStore(g) as store:
         assert store.threshold() == chosen
     # a gallery whose threshold came from its own scans is calibrated again when it grows
@@ -151,6 +153,31 @@ def test_enrolling_more_keeps_a_threshold_calibrated_on_scans_given_for_it(kinec
     assert run.exit_code == 0 and "recorded in" in run.output, run.output
     with GalleryStore(own) as store:
         assert store.threshold()["entries"] == before["entries"] + 1
+    # entries added with no calibration after them (--no-calibrate, or an enrolment interrupted before it): the
+    # next enrolment calibrates again, though it adds nothing
+    late = tmp_path / "late"
+    write_dataset(late, DatasetConfig(subjects=1, scans=1, first_subject=60, scanner=sensor_profile("kinect-v2-8bit"),
+                                      seed=9))
+    run = CliRunner().invoke(main, ["enroll", str(late), "--gallery", str(own), "--jobs", "1", "--no-calibrate"])
+    assert run.exit_code == 0 and "recorded in" not in run.output, run.output
+    run = CliRunner().invoke(main, ["enroll", str(late), "--gallery", str(own), "--jobs", "1"])
+    assert run.exit_code == 0 and "0 enrolled, 1 already enrolled" in run.output and "recorded in" in run.output, \
+        run.output
+    with GalleryStore(own) as store:
+        assert store.threshold()["entries"] == before["entries"] + 2 == len(store.entries())
+    run = CliRunner().invoke(main, ["enroll", str(late), "--gallery", str(own), "--jobs", "1"])
+    assert run.exit_code == 0 and "recorded in" not in run.output, run.output  # up to date: not again
+
+
+def test_a_threshold_needs_impostor_scores_that_vary():
+    """One impostor pair, or pairs that all score alike (a fusion's per-probe normalisation over a one-person
+    gallery gives 0 to every score), place no threshold: refused, where a threshold just above that one score was
+    recorded and accepted impostors once the gallery grew."""
+    for impostor in (np.array([0.37]), np.zeros(12)):
+        with pytest.raises(ValueError, match="give no spread of scores"):
+            threshold_record(np.zeros(0), impostor, 0.01, scans=3, failed=0, data="x", entries=1)
+    record = threshold_record(np.zeros(0), np.array([0.1, 0.3]), 0.5, scans=2, failed=0, data="x", entries=2)
+    assert record["value"] == 0.3 and record["impostor_pairs"] == 2
 
 
 def test_enrolling_through_the_service_calibrates_its_gallery_as_a_local_calibration_does(kinect, tmp_path,

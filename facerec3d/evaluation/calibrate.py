@@ -146,6 +146,11 @@ def threshold_record(genuine: np.ndarray, impostor: np.ndarray, fmr: float | Non
     if impostor.size == 0:
         raise ValueError("no impostor pair to calibrate on: the gallery and the calibration scans need at least two "
                          "subjects")
+    finite = impostor[np.isfinite(impostor)]
+    if impostor.size < 2 or (finite.size == impostor.size and finite.max() == finite.min()):
+        raise ValueError(f"the {impostor.size} impostor pair{'s' * (impostor.size != 1)} give no spread of scores to "
+                         "place a threshold in (a fusion normalises each probe's scores over the gallery, which "
+                         "needs several people): calibrate with more scans, or once the gallery holds more people")
     if fmr is None and genuine.size == 0:
         raise ValueError("the equal error rate needs genuine pairs (a second scan of some enrolled subjects); give "
                          "them, or calibrate at a false-match rate")
