@@ -131,14 +131,19 @@ def convert(src, dst):
 @click.option("--rows", type=click.IntRange(min=16), help="Range image rows (default: the sensor's).")
 @click.option("--cols", type=click.IntRange(min=16),
               help="Range image columns (default: the sensor's; the focal length scales with it).")
+@click.option("--overwrite", is_flag=True, help="Replace the dataset already in OUT (the files its manifest.csv "
+              "lists are removed first); without it, an OUT holding a dataset is refused.")
 @friendly
 def synth(out, subjects, scans, fmt, seed, first_subject, expressions, expression_strength, sensor, identities, rows,
-          cols):
-    """Write a synthetic dataset of range scans with ground truth to OUT."""
+          cols, overwrite):
+    """Write a synthetic dataset of range scans with ground truth to OUT (refused when OUT holds one, unless
+    --overwrite: a gallery enrolled from its files would silently hold other faces)."""
     from dataclasses import replace
 
     from facerec3d.datasets.synthetic import (EXPRESSIONS, DatasetConfig, identity_profile, sensor_profile,
                                               write_dataset)
+
+    _clear_dataset(Path(out), overwrite)
 
     chosen = tuple(e.strip() for e in expressions.split(",") if e.strip()) if expressions else EXPRESSIONS
     scanner = sensor_profile(sensor)
@@ -151,6 +156,30 @@ def synth(out, subjects, scans, fmt, seed, first_subject, expressions, expressio
                         identity=identity_profile(identities))
     manifest = write_dataset(out, cfg, fmt, progress=True)
     click.echo(f"wrote {subjects * scans} scans; manifest and ground truth: {manifest}")
+
+
+def _clear_dataset(out: Path, overwrite: bool) -> None:
+    """Refuse an OUT that holds a dataset (its manifest.csv), or with `overwrite` remove the files its manifest lists
+    (those inside OUT only), its intrinsics.json and the manifest, so no scan of the old dataset stays behind."""
+    import csv
+
+    from facerec3d.errors import InputError
+
+    manifest = out / "manifest.csv"
+    if not manifest.is_file():
+        return
+    if not overwrite:
+        raise InputError(f"{out}: holds a dataset already ({manifest.name}); give --overwrite to replace it")
+    root = out.resolve()
+    try:
+        with open(manifest, newline="", encoding="utf-8") as f:
+            listed = [row.get("path") or "" for row in csv.DictReader(f)]
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise InputError(f"{manifest}: cannot read the old dataset's manifest ({e})") from None
+    for rel in listed + ["intrinsics.json", manifest.name]:
+        path = (out / rel).resolve()
+        if rel and path.is_relative_to(root) and path.is_file():
+            path.unlink()
 
 
 @main.command()

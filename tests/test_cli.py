@@ -21,6 +21,26 @@ def test_synth_info_convert_view(tmp_path):
     assert (tmp_path / "v.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_synth_never_overwrites_a_dataset_unasked(tmp_path):
+    """A second synth into a dataset's folder overwrote same-named scans (a gallery enrolled from them then holds
+    other faces) and left the others behind: refused without --overwrite; with it, only the new dataset remains."""
+    out, run = tmp_path / "d", CliRunner()
+    small = ["--rows", "64", "--cols", "80"]
+    r = run.invoke(main, ["synth", str(out), "--subjects", "2", "--scans", "3", *small])
+    assert r.exit_code == 0, r.output
+    (out / "notes.txt").write_text("mine")
+    before = {p: p.read_bytes() for p in out.rglob("*.abs.gz")}
+    r = run.invoke(main, ["synth", str(out), "--subjects", "1", "--scans", "2", "--seed", "3", *small])
+    assert r.exit_code == 2 and r.output == f"error: {out}: holds a dataset already (manifest.csv); give --overwrite " \
+                                            "to replace it\n", r.output
+    assert {p: p.read_bytes() for p in out.rglob("*.abs.gz")} == before
+    r = run.invoke(main, ["synth", str(out), "--subjects", "1", "--scans", "2", "--seed", "3", "--overwrite", *small])
+    assert r.exit_code == 0, r.output
+    listed = [line.split(",")[0] for line in (out / "manifest.csv").read_text().splitlines()[1:]]
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*.abs.gz")) == sorted(listed) and len(listed) == 2
+    assert (out / "notes.txt").read_text() == "mine"  # not the dataset's: left alone
+
+
 def test_bad_input_is_one_line_and_exit_code_2(tmp_path):
     bad = tmp_path / "bad.bnt"
     bad.write_bytes(b"\x01\x02")
