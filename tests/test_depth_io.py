@@ -85,6 +85,10 @@ BAD_INTRINSICS = [
     ('{"fx": 365, "fy": 365, "cx": 59, "cy": 74, "width": 7, "height": 9}', "intrinsics are for 9x7"),
     ('{"fx": 365, "fy": 365, "cx": 59, "cy": 74, "encoding": "depth32"}', "'encoding' must be one of plain, depth16"),
     ('{"fx": 365, "fy": 365, "cx": 59, "cy": 74, "encoding": "depth16", "min_confidence": 1.5}', "'min_confidence'"),
+    ('{"fx": 365, "fy": 365, "cx": 59, "cy": 74, "depth_units_mm": 0.1}',
+     r"unknown field 'depth_units_mm' \(did you mean 'depth_unit_mm'\?\)"),  # read as 1 mm units, 10× off, before
+    ('{"fx": 365, "fy": 365, "cx": 59, "cy": 74, "depth_scale_m": 0.001, "depth_unit_mm": 10}',
+     "depth_unit_mm and depth_scale_m disagree"),
 ]
 
 

@@ -30,6 +30,7 @@ one camera needs one file at its root.
 
 from __future__ import annotations
 
+import difflib
 import json
 import math
 from dataclasses import asdict, dataclass
@@ -44,6 +45,8 @@ from facerec3d.scan import FaceScan
 INTRINSICS_NAME = "intrinsics.json"
 INTRINSICS_SEARCH_DEPTH = 3  # parent folders searched for intrinsics.json, beyond the frame's own
 ENCODINGS = ("plain", "depth16")  # how a pixel holds depth (`Intrinsics.encoding`)
+INTRINSICS_FIELDS = ("fx", "fy", "cx", "cy", "depth_unit_mm", "depth_scale_m", "invalid", "width", "height",
+                     "encoding", "min_confidence")  # what `Intrinsics.from_dict` reads
 
 
 @dataclass(frozen=True)
@@ -73,8 +76,16 @@ class Intrinsics:
             values[name] = _number(data[name], source, name)
         if values["fx"] <= 0 or values["fy"] <= 0:
             raise ScanFormatError(source, "intrinsics: fx and fy must be positive")
+        for name in data:  # other fields (a sensor's name, notes) are the file's own; a misspelt one of ours is not
+            near = difflib.get_close_matches(str(name), INTRINSICS_FIELDS, n=1, cutoff=0.85)
+            if name not in INTRINSICS_FIELDS and near:
+                raise ScanFormatError(source, f"intrinsics: unknown field {str(name)[:40]!r} (did you mean {near[0]!r}?)")
         if "depth_unit_mm" in data:
             values["depth_unit_mm"] = _number(data["depth_unit_mm"], source, "depth_unit_mm")
+            if "depth_scale_m" in data and not math.isclose(
+                    1000.0 * _number(data["depth_scale_m"], source, "depth_scale_m"), values["depth_unit_mm"]):
+                raise ScanFormatError(source, "intrinsics: depth_unit_mm and depth_scale_m disagree (give one: the "
+                                              "millimetres, or the metres, of one stored depth unit)")
         elif "depth_scale_m" in data:
             values["depth_unit_mm"] = 1000.0 * _number(data["depth_scale_m"], source, "depth_scale_m")
         if values.get("depth_unit_mm", 1.0) <= 0:
