@@ -158,6 +158,15 @@ def synth(out, subjects, scans, fmt, seed, first_subject, expressions, expressio
     click.echo(f"wrote {subjects * scans} scans; manifest and ground truth: {manifest}")
 
 
+def _finite(value: float | None, name: str) -> float | None:
+    """A click option's float, refused (a usage error) when it is NaN or infinite: no score compares to NaN."""
+    import math
+
+    if value is not None and not math.isfinite(value):
+        raise click.BadParameter(f"must be a finite number, not {value}", param_hint=name)
+    return value
+
+
 def _clear_dataset(out: Path, overwrite: bool) -> None:
     """Refuse an OUT that holds a dataset (its manifest.csv), or with `overwrite` remove the files its manifest lists
     (those inside OUT only), its intrinsics.json and the manifest, so no scan of the old dataset stays behind."""
@@ -586,6 +595,10 @@ def evaluate(data, method, method_config, train, model, out, overwrite, protocol
             echo=_to_stderr)  # what a learnt method learnt from, --train unused
     _print_metrics(m)
     click.echo(f"report: {Path(out) / 'report.html'}")
+    if not (m.get("n_processed") and m.get("n_gallery")):  # nothing was compared: the batch failed as a whole
+        click.echo(f"no comparison made: {m.get('n_gallery', 0)} gallery faces enrolled, {m.get('n_processed', 0)} "
+                   f"probes processed (the reasons: {Path(out) / 'probes.csv'})", err=True)
+        sys.exit(1)
 
 
 @main.command()
@@ -725,7 +738,8 @@ def identify(probe, gallery, k, config_file, cache, intrinsics, cascade, shortli
 @click.argument("probe", type=click.Path(exists=True, dir_okay=False))
 @click.option("--gallery", "gallery", type=click.Path(dir_okay=False), help="Gallery store (or --server).")
 @click.option("--claim", required=True, help="The claimed subject ID.")
-@click.option("--threshold", type=float, help="Accept scores >= this (default: the gallery's calibrated threshold, "
+@click.option("--threshold", type=float, callback=lambda ctx, param, v: _finite(v, "--threshold"),
+              help="Accept scores >= this (default: the gallery's calibrated threshold, "
               "see 'gallery STORE calibrate'; else for icp -1.8 mm², the EER point of synthetic laser scans).")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False),
               help="Preprocessing settings; must be the gallery's (default: the gallery's).")

@@ -41,6 +41,15 @@ def test_synth_never_overwrites_a_dataset_unasked(tmp_path):
     assert (out / "notes.txt").read_text() == "mine"  # not the dataset's: left alone
 
 
+def test_a_threshold_that_is_no_number_is_refused(tmp_path):
+    probe = tmp_path / "p.xyz"
+    probe.write_text("0 0 0\n")
+    for value in ("nan", "inf", "-inf"):  # `verify` said "reject (threshold nan)" for any score
+        r = CliRunner().invoke(main, ["verify", str(probe), "--gallery", str(tmp_path / "g.sqlite"), "--claim", "a",
+                                      "--threshold", value])
+        assert r.exit_code == 2 and f"--threshold: must be a finite number, not {float(value)}" in r.output, r.output
+
+
 def test_bad_input_is_one_line_and_exit_code_2(tmp_path):
     bad = tmp_path / "bad.bnt"
     bad.write_bytes(b"\x01\x02")

@@ -97,6 +97,13 @@ def test_cli_evaluate_and_compare(dataset, runs, tmp_path):
     assert (tmp_path / "cmp" / "compare.html").is_file()
     r = CliRunner().invoke(main, ["evaluate", str(tmp_path / "nothing-here.csv"), "--out", str(tmp_path / "x")])
     assert r.exit_code == 2
+    gone = tmp_path / "gone"  # a manifest whose every scan is missing: each a failure, and the run exits 1
+    gone.mkdir()
+    (gone / "manifest.csv").write_text((dataset / "manifest.csv").read_text())
+    r = CliRunner().invoke(main, ["evaluate", str(gone / "manifest.csv"), "--out", str(tmp_path / "g"), "--jobs", "1",
+                                  "--cache", str(out / "cache")])
+    assert r.exit_code == 1 and "no comparison made: 0 gallery faces enrolled, 0 probes processed" in r.output, \
+        r.output
     curves = tmp_path / "cli" / "curves.npz"  # a run's damaged curves: one line naming the file
     curves.write_bytes(curves.read_bytes()[:200])
     r = CliRunner().invoke(main, ["compare", str(out / "one"), str(tmp_path / "cli"), "--out", str(tmp_path / "cmp2")])
