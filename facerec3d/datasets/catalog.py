@@ -111,7 +111,9 @@ def open_dataset(source: str | Path) -> Dataset:
         return Dataset(tuple(_frgc_record(p) for p in frgc), "frgc", source)
     if bos:
         return Dataset(tuple(_bosphorus_record(p) for p in bos), "bosphorus", source)
-    raise DatasetError(f"{source}: no FRGC (<subject>d<seq>.abs) or Bosphorus (bsNNN_TYPE_SUB_k.bnt) scans found")
+    raise DatasetError(f"{source}: no FRGC (<subject>d<seq>.abs) or Bosphorus (bsNNN_TYPE_SUB_k.bnt) scans found, and "
+                       "no manifest.csv (other scans, depth frames among them: give the files themselves, or a "
+                       "manifest.csv listing them with their subjects)")
 
 
 def scan_record(path: str | Path) -> ScanRecord | None:
