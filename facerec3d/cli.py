@@ -209,8 +209,14 @@ def view(file, output, with_face):
         scan = gridify(load_scan(file))
         panels = [(f"{Path(file).name} (raw)", scan)]
         if with_face:
-            with _one_blas_thread():
-                face = Preprocessor()(scan)
+            from facerec3d.errors import FailureToAcquire
+
+            try:
+                with _one_blas_thread():
+                    face = Preprocessor()(scan)
+            except FailureToAcquire as e:  # the scan itself can still be looked at
+                raise FailureToAcquire(f"{e.reason} (`facerec3d view --raw` renders the scan as it is)",
+                                       e.path) from None
             panels[0] = (panels[0][0], scan.replace(landmarks=landmarks_in_input_frame(face)))
             panels.append(("preprocessed (frontal, 1 mm grid)", face))
         render(panels, output)
