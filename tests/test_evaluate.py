@@ -138,3 +138,16 @@ def test_cli_method_config_sets_the_matcher_and_bad_settings_are_one_line(datase
     r = CliRunner().invoke(main, base + ["--out", str(tmp_path / "bad"), "--method-config", str(bad)])
     assert r.exit_code == 2 and "unknown ICPConfig settings: fine_pionts" in r.output
     assert "Traceback" not in r.output
+
+
+def test_a_cascade_for_a_method_it_does_not_suit_is_refused_before_training(dataset, tmp_path, monkeypatch):
+    import facerec3d.evaluation.run as run_module
+    from facerec3d.errors import InputError
+    from facerec3d.gallery.cascade import CascadeConfig
+
+    def trained(*args, **kwargs):
+        raise AssertionError("trained before the cascade was checked")
+
+    monkeypatch.setattr(run_module, "trained_matcher", trained)
+    with pytest.raises(InputError, match="the cascade works with the icp method, not 'lda'"):
+        evaluate(dataset, "lda", tmp_path / "run", cascade=CascadeConfig(), train=dataset, progress=False)

@@ -30,7 +30,7 @@ from facerec3d.evaluation.provenance import provenance
 from facerec3d.evaluation.report import claim_run_folder, write_run
 from facerec3d.gallery.cascade import Cascade, CascadeConfig, check_cascadable
 from facerec3d.gallery.engine import Engine
-from facerec3d.matching.registry import DEFAULT_METHOD, trained_matcher
+from facerec3d.matching.registry import DEFAULT_METHOD, make_matcher, trained_matcher
 from facerec3d.preprocess.batch import DEFAULT_CACHE
 from facerec3d.preprocess.pipeline import QUALITY_FIELDS, PreprocessConfig, scan_quality
 
@@ -65,6 +65,8 @@ def evaluate(data: str | Path, method: str = DEFAULT_METHOD, out: str | Path = "
     dataset = open_dataset(data)
     sp = split(dataset, protocol)  # a dataset the protocol does not suit is refused before any work
     claim_run_folder(out, overwrite, keep=[model])
+    if cascade is not None and model is None:  # refused before any training, not after
+        check_cascadable(make_matcher(method, options))
     with Engine.create(jobs, scheduler) as engine:
         matcher, training = trained_matcher(method, options, train=train, model=model, workers=engine, cache=cache,
                                             config=config, progress=progress, echo=echo)
