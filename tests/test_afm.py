@@ -124,6 +124,28 @@ def test_the_robust_refit_finds_occluded_faces_outside_the_model():
     assert (np.array(found) == np.arange(len(people))).all(), found
 
 
+def test_the_refit_runs_longer_on_laser_fine_faces_only(faces, monkeypatch):
+    """afm's refit runs 48 iterations on a face its preprocessing measured finer than 1.5 mm (a laser scan) and 6 on
+    a depth camera's coarser faces or a face with no measured pitch; morph-id's refit, and afm galleries stored
+    before the setting, keep 6 everywhere."""
+    import facerec3d.matching.morphable as morphable
+
+    seen, real = [], morphable.fit_face_model
+    monkeypatch.setattr(morphable, "fit_face_model", lambda *a, **k: seen.append(a[3].iterations) or real(*a, **k))
+    face = faces[(0, "neutral")]
+    assert "quality" not in face.meta.extra
+    pitched = lambda p: face.replace(meta=face.meta.replace(extra=dict(face.meta.extra, quality={"pitch_mm": p})))
+    stored = AFMMatcher.from_stored({"refit": {k: v for k, v in RefitConfig().__dict__.items()
+                                               if k != "fine_iterations"}})
+    for config, cases in ((AFMConfig().refit, ((pitched(0.72), 48), (pitched(3.5), 6), (face, 6))),
+                          (MorphIDMatcher().config.refit, ((pitched(0.72), 6),)),
+                          (stored.config.refit, ((pitched(0.72), 6),))):
+        for scan, iterations in cases:
+            seen.clear()
+            morphable.refit(scan, config)
+            assert seen == [iterations]
+
+
 def distances(matcher, faces, probe_expression):
     gallery = [matcher.enroll(faces[(s, "neutral")]) for s in SUBJECTS]
     return np.array([matcher.distances(matcher.prepare(faces[(s, probe_expression)]), gallery) for s in SUBJECTS])

@@ -81,22 +81,30 @@ class RefitConfig:
     regularisation: float = 3.0  # λ of the Gaussian prior on the modes (preprocessing's is 1.0): 1.0 gave 58.8 %,
     #   3.0 71.2 %, 10 62.1 % on the outside-model set
     robust_mm: float = 0.7  # Cauchy scale (mm): least squares instead gave 27.9 % on the outside-model set
+    fine_iterations: int = 0  # iterations instead of `iterations` for a face scanned finer than `fine_mm` (its
+    #   preprocessing's measured pitch, `quality.pitch_mm`); 0: `iterations` for every face. afm's default is 48
+    #   (`AFMConfig.refit`): the refit had not converged on laser scans (docs/model-methods.md)
+    fine_mm: float = 1.5  # the pitch (mm) below which a scan counts as fine: a laser's 0.7 mm, not a depth camera's
+    #   2.5-4 mm faces (the same bound as `preprocess.holes.HoleConfig.fine_mm`)
 
     def __post_init__(self) -> None:
-        if self.iterations < 1 or self.regularisation < 0:
-            raise ValueError("iterations must be ≥ 1 and regularisation ≥ 0")
+        if self.iterations < 1 or self.regularisation < 0 or self.fine_iterations < 0 or not self.fine_mm > 0:
+            raise ValueError("iterations must be ≥ 1, fine_iterations ≥ 0, fine_mm > 0 and regularisation ≥ 0")
         if not 0 < self.end_distance_mm <= self.start_distance_mm or not self.robust_mm > 0:
             raise ValueError("need 0 < end_distance_mm ≤ start_distance_mm and robust_mm > 0")
 
 
 def refit(face: FaceScan, config: RefitConfig = RefitConfig(), fit: FaceFit | None = None) -> FaceFit:
     """A face's model fit refined robustly (`RefitConfig`) from `fit` (default: `face_fit(face)`, the fit
-    preprocessing kept); that fit itself when the refit is off or finds too few points."""
+    preprocessing kept), `fine_iterations` long on a face its preprocessing measured finer than `fine_mm`; that fit
+    itself when the refit is off or finds too few points."""
     fit = face_fit(face) if fit is None else fit
     if not config.enabled:
         return fit
     k = len(fit.identity)
-    fit_config = ModelFitConfig(identity_modes=k, iterations=config.iterations,
+    pitch = face.meta.extra.get("quality", {}).get("pitch_mm")  # none recorded (an older face): `iterations`
+    fine = config.fine_iterations and pitch is not None and float(pitch) < config.fine_mm
+    fit_config = ModelFitConfig(identity_modes=k, iterations=config.fine_iterations if fine else config.iterations,
                                 start_distance_mm=config.start_distance_mm, end_distance_mm=config.end_distance_mm,
                                 regularisation=config.regularisation)
     start = np.concatenate([fit.identity, fit.expression])
