@@ -76,9 +76,9 @@ class Intrinsics:
             values[name] = _number(data[name], source, name)
         if values["fx"] <= 0 or values["fy"] <= 0:
             raise ScanFormatError(source, "intrinsics: fx and fy must be positive")
-        for name in data:  # other fields (a sensor's name, notes) are the file's own; a misspelt one of ours is not
-            near = difflib.get_close_matches(str(name), INTRINSICS_FIELDS, n=1, cutoff=0.85)
-            if name not in INTRINSICS_FIELDS and near:
+        for name in set(data) - set(INTRINSICS_FIELDS):  # other fields (a sensor's name, notes) are the file's own;
+            #                                                   a misspelt one of ours is not
+            if near := difflib.get_close_matches(str(name), INTRINSICS_FIELDS, n=1, cutoff=0.85):
                 raise ScanFormatError(source, f"intrinsics: unknown field {str(name)[:40]!r} (did you mean {near[0]!r}?)")
         if "depth_unit_mm" in data:
             values["depth_unit_mm"] = _number(data["depth_unit_mm"], source, "depth_unit_mm")
