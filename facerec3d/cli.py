@@ -37,9 +37,33 @@ def friendly(fn):
 EXIT_INTERRUPTED, EXIT_BROKEN_PIPE = 130, 141
 
 
+_HELP_FOR_NO_ARGUMENTS = getattr(click.exceptions, "NoArgsIsHelpError", ())  # click >= 8.2
+
+
 class _Main(click.Group):
     """The command group, ending as a Unix tool does: Ctrl-C exits 130 with one line, and output into a closed pipe
-    (`facerec3d gallery g.sqlite list | head -1`) ends quietly with 141."""
+    (`facerec3d gallery g.sqlite list | head -1`) ends quietly with 141; a usage error (a missing argument, a bad
+    option value) is one line, as every other error, with the command's --help to look at (exit code 2)."""
+
+    def main(self, *args, standalone_mode: bool = True, **kwargs):
+        if not standalone_mode:
+            return super().main(*args, standalone_mode=False, **kwargs)
+        try:
+            rv = super().main(*args, standalone_mode=False, **kwargs)
+        except _HELP_FOR_NO_ARGUMENTS as e:  # `facerec3d` alone: the help, as click shows it
+            e.show()
+            sys.exit(e.exit_code)
+        except click.UsageError as e:
+            where = f" (see {e.ctx.command_path} --help)" if e.ctx is not None else ""
+            click.echo(f"error: {e.format_message()}{where}", err=True)
+            sys.exit(e.exit_code)
+        except click.ClickException as e:
+            e.show()
+            sys.exit(e.exit_code)
+        except click.Abort:
+            click.echo("aborted", err=True)
+            sys.exit(1)
+        sys.exit(rv if isinstance(rv, int) else 0)
 
     def invoke(self, ctx):
         try:

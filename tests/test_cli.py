@@ -41,6 +41,16 @@ def test_synth_never_overwrites_a_dataset_unasked(tmp_path):
     assert (out / "notes.txt").read_text() == "mine"  # not the dataset's: left alone
 
 
+def test_usage_errors_are_one_line_naming_the_help_to_read(tmp_path):
+    for args, said in ((["synth", str(tmp_path / "s"), "--subjects", "0"], "Invalid value for '--subjects'"),
+                       (["verify"], "Missing argument 'PROBE'"), (["nosuch"], "No such command 'nosuch'")):
+        r = CliRunner().invoke(main, args, prog_name="facerec3d")
+        assert r.exit_code == 2 and r.output.count("\n") == 1 and r.output.startswith(f"error: {said}"), r.output
+        assert f"(see facerec3d {args[0] + ' ' if args[0] != 'nosuch' else ''}--help)" in r.output, r.output
+    r = CliRunner().invoke(main, [], prog_name="facerec3d")  # the command alone: its help
+    assert r.output.startswith("Usage: facerec3d [OPTIONS] COMMAND") and "synth" in r.output, r.output
+
+
 def test_a_threshold_that_is_no_number_is_refused(tmp_path):
     probe = tmp_path / "p.xyz"
     probe.write_text("0 0 0\n")
