@@ -701,6 +701,9 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
                                                                                                       total):
                     _calibrate_threshold(store, None, 0.01, engine, cache, quiet_if_impossible=True,
                                          intrinsics=intrinsics)
+    for source, subject, asked in report.elsewhere:
+        click.echo(f"{source}: already enrolled as subject {subject!r}, not {asked!r} (to enrol it as {asked!r}: "
+                   f"gallery {gallery} remove --entry ID, then enroll again)")
     click.echo(f"{report.enrolled} enrolled, {len(report.skipped)} already enrolled, {len(report.failures)} failed "
                f"to enrol; {gallery}: {total} entries")
     if report.failures and not report.enrolled and not report.skipped:

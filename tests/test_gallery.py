@@ -213,7 +213,14 @@ def test_cli_enroll_identify_verify_and_gallery(tmp_path):
     assert "3 enrolled, 0 already enrolled, 1 failed to enrol" in r.output and "broken.abs" in r.output
     r = run.invoke(main, ["enroll", str(gallery_scans[0]), "--gallery", store, "--method", "icp", "--jobs", "1",
                           "--cache", cache])
-    assert "0 enrolled, 1 already enrolled" in r.output
+    assert "0 enrolled, 1 already enrolled" in r.output and "already enrolled as subject" not in r.output
+    r = run.invoke(main, ["enroll", str(gallery_scans[0]), "--gallery", store, "--subject", "bob", "--jobs", "1",
+                          "--cache", cache])  # the same file under another name: said, not enrolled twice
+    assert r.exit_code == 0 and "0 enrolled, 1 already enrolled" in r.output, r.output
+    with GalleryStore(store) as s:
+        first = next(e for e in s.entries() if e.source == str(gallery_scans[0].resolve()))
+        rows = len(s.entries())
+    assert f"already enrolled as subject {first.subject!r}, not 'bob'" in r.output and rows == 3, r.output
     for cascade in ([], ["--cascade"]):
         r = run.invoke(main, ["identify", str(probe), "--gallery", store, "-k", "3", "--jobs", "2", "--cache", cache,
                               *cascade])

@@ -110,6 +110,8 @@ class EnrolReport:
     enrolled: int = 0
     skipped: list[str] = field(default_factory=list)
     failures: list[tuple[str, str]] = field(default_factory=list)
+    elsewhere: list[tuple[str, str, str]] = field(default_factory=list)  # skipped sources enrolled under another
+    #   subject than the one asked now: (source, the entry's subject, the subject asked)
 
 
 def content_hash(path: str | Path) -> str | None:
@@ -158,10 +160,15 @@ def enroll_scans(store: GalleryStore, records: Sequence[ScanRecord], matcher: Ma
     report = EnrolReport()
     done = store.sources()
     todo = []
+    enrolled_as = None  # source -> subject of its entry, read when a skipped record asks for a subject
     for r in records:
         source = str(Path(r.path).resolve())
         if source in done:
             report.skipped.append(source)
+            if r.subject is not None:
+                enrolled_as = enrolled_as or {e.source: e.subject for e in store.entries()}
+                if source in enrolled_as and enrolled_as[source] != r.subject:
+                    report.elsewhere.append((source, str(enrolled_as[source]), str(r.subject)))
             if on_result:
                 on_result(source, "skipped")
         else:
