@@ -201,6 +201,9 @@ def test_score_file_errors(tmp_path):
     bad.write_text("A A a1 0.5\n\nA B b1 zero\n")
     with pytest.raises(ValueError, match="bad.txt:3"):
         read_score_rows(bad)
+    bad.write_text("A A a1 0.5\nA B b1 -inf\nA C c1 nan\n")  # −inf is a score (no match found), NaN none
+    with pytest.raises(ValueError, match="bad.txt:3: the score nan is not a number"):
+        read_score_rows(bad)
 
 
 def test_infinite_scores_rank_last_and_first():

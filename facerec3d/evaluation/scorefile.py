@@ -98,6 +98,8 @@ def _read_columns(path: str | Path, n: int) -> list[np.ndarray]:
                 if len(parts) != n:
                     raise ValueError(f"expected {n} fields, got {len(parts)}")
                 parts[-1] = float(parts[-1])
+                if parts[-1] != parts[-1]:  # NaN: no comparison (−inf, a match not found, is a score)
+                    raise ValueError(f"the score {parts[-1]} is not a number")
             except ValueError as e:
                 raise InputError(f"{path}:{line_no}: {e}") from None
             for col, value in zip(cols, parts):
