@@ -111,3 +111,21 @@ def test_frgc_exp3_masks_by_hand(tmp_path):
     (tmp_path / "n.csv").write_text("path,subject\na.abs,1\n")
     with pytest.raises(ValueError, match="no FRGC semester"):
         split(open_dataset(tmp_path / "n.csv"), "frgc-exp3")
+
+
+def test_a_persons_folder_of_a_recording_is_read_through_the_manifest_above_it(tmp_path):
+    """`enroll frames/04201` (a depth-camera recording's person, its manifest.csv at the top) was refused as "no
+    FRGC or Bosphorus scans found": it is that person's rows of the manifest; a folder no manifest lists still is."""
+    from facerec3d.datasets.catalog import DatasetError
+    from facerec3d.datasets.synthetic import DatasetConfig, ScannerConfig, write_dataset
+
+    write_dataset(tmp_path / "frames", DatasetConfig(subjects=2, scans=2, scanner=ScannerConfig(rows=48, cols=64)),
+                  "png")
+    whole = open_dataset(tmp_path / "frames")
+    person = whole.records[-1].subject
+    one = open_dataset(tmp_path / "frames" / person)
+    assert [r.path for r in one.records] == [r.path for r in whole.records if r.subject == person]
+    assert len(one) == 2 and one.layout == "manifest"
+    (tmp_path / "frames" / "notes").mkdir()
+    with pytest.raises(DatasetError, match="no FRGC .* scans found, and no manifest.csv"):
+        open_dataset(tmp_path / "frames" / "notes")

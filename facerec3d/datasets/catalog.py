@@ -104,6 +104,8 @@ def open_dataset(source: str | Path) -> Dataset:
         raise DatasetError(f"{source}: no such file or folder")
     if (source / "manifest.csv").is_file():
         return read_manifest(source / "manifest.csv")
+    if (inside := _within_a_manifest(source)) is not None:
+        return inside
     files = sorted(p for p in source.rglob("*") if p.is_file())
     frgc = [p for p in files if FRGC_PATTERN.match(p.name)]
     bos = [p for p in files if BOSPHORUS_PATTERN.match(p.name)]
@@ -164,6 +166,22 @@ def _bosphorus_record(path: Path) -> ScanRecord:
     kind = BOSPHORUS_KINDS.get(m["type"].upper())
     expression = {"neutral": "neutral", "expression": "non-neutral"}.get(kind)
     return ScanRecord(path, m["subject"], path.stem, expression, kind, f"{m['type']}_{m['sub']}")
+
+
+MANIFEST_SEARCH_DEPTH = 3  # parent folders searched for the manifest of a sub-folder given as a dataset
+
+
+def _within_a_manifest(folder: Path) -> Dataset | None:
+    """The scans under `folder` that the nearest manifest.csv of a folder above it lists (a person's folder of a
+    depth-camera recording, `<subject>/front_1.png`, whose manifest is at the top), or None when no manifest above
+    lists any."""
+    here = folder.resolve()
+    for parent in list(here.parents)[:MANIFEST_SEARCH_DEPTH]:
+        if (parent / "manifest.csv").is_file():
+            whole = read_manifest(parent / "manifest.csv")
+            records = tuple(r for r in whole.records if Path(r.path).resolve().is_relative_to(here))
+            return Dataset(records, whole.layout, folder) if records else None
+    return None
 
 
 def read_manifest(path: str | Path) -> Dataset:
