@@ -125,9 +125,9 @@ def test_the_robust_refit_finds_occluded_faces_outside_the_model():
 
 
 def test_the_refit_runs_longer_on_laser_fine_faces_only(faces, monkeypatch):
-    """afm's refit runs 48 iterations on a face its preprocessing measured finer than 1.5 mm (a laser scan) and 6 on
-    a depth camera's coarser faces or a face with no measured pitch; morph-id's refit, and afm galleries stored
-    before the setting, keep 6 everywhere."""
+    """afm's and morph-id's refit runs 48 iterations on a face its preprocessing measured finer than 1.5 mm (a laser
+    scan) and 6 on a depth camera's coarser faces or a face with no measured pitch; galleries stored before the
+    setting keep 6 everywhere."""
     import facerec3d.matching.morphable as morphable
 
     seen, real = [], morphable.fit_face_model
@@ -135,11 +135,11 @@ def test_the_refit_runs_longer_on_laser_fine_faces_only(faces, monkeypatch):
     face = faces[(0, "neutral")]
     assert "quality" not in face.meta.extra
     pitched = lambda p: face.replace(meta=face.meta.replace(extra=dict(face.meta.extra, quality={"pitch_mm": p})))
-    stored = AFMMatcher.from_stored({"refit": {k: v for k, v in RefitConfig().__dict__.items()
-                                               if k != "fine_iterations"}})
+    before = {"refit": {k: v for k, v in RefitConfig().__dict__.items() if k != "fine_iterations"}}
     for config, cases in ((AFMConfig().refit, ((pitched(0.72), 48), (pitched(3.5), 6), (face, 6))),
-                          (MorphIDMatcher().config.refit, ((pitched(0.72), 6),)),
-                          (stored.config.refit, ((pitched(0.72), 6),))):
+                          (MorphIDMatcher().config.refit, ((pitched(0.72), 48), (pitched(3.5), 6))),
+                          (AFMMatcher.from_stored(before).config.refit, ((pitched(0.72), 6),)),
+                          (MorphIDMatcher.from_stored(before).config.refit, ((pitched(0.72), 6),))):
         for scan, iterations in cases:
             seen.clear()
             morphable.refit(scan, config)
@@ -233,7 +233,7 @@ def test_a_gallery_stored_before_the_refit_keeps_working_without_it(tmp_path, me
     db.close()
     with GalleryStore(path) as store:
         old = store.matcher()
-    assert not old.config.refit.enabled and old.config.refit == RefitConfig(enabled=False)
+    assert not old.config.refit.enabled and old.config.refit == RefitConfig(enabled=False, fine_iterations=0)
     assert {k: v for k, v in old.options().items() if k != "refit"} == options
     assert make_matcher(method, options).config.refit.enabled  # options a user gives take today's default
 

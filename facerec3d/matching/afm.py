@@ -70,10 +70,8 @@ class AFMConfig:
     """Geometry-image wavelet matching settings (§8.10.1)."""
 
     image: GeometryImageConfig = field(default_factory=GeometryImageConfig)  # UV grid and sampling
-    refit: RefitConfig = field(default_factory=lambda: RefitConfig(fine_iterations=48))  # the robust refit of the fit
-    #   before sampling; on laser-fine faces 48 iterations, chosen on a tuning set of outside-model faces (tune60-outside:
-    #   6 / 16 / 24 / 32 / 48 iterations 92.5 / 94.2 / 95.4 / 95.0 / 95.8 % rank-1), test60-outside 91.7 → 96.3 %; on
-    #   rap3df-2019's Kinect faces 48 lost (tuning half 39.2 → 31.9 %), so coarser faces keep 6 (docs/model-methods.md)
+    refit: RefitConfig = field(default_factory=RefitConfig)  # the robust refit of the fit before sampling (48
+    #   iterations on laser-fine faces, 6 on depth-camera faces: `RefitConfig.fine_iterations`)
     levels: int = 3  # Haar levels: 64 → 32 → 16 → 8 (the 8 × 8 approximation covers 16 mm cells)
     drop_finest: int = 1  # finest detail levels left out (2 mm-scale noise): 3 × 1,024 coefficients remain
     expression: str = "blendshapes"  # one of EXPRESSION_HANDLING (module docstring)

@@ -81,9 +81,11 @@ class RefitConfig:
     regularisation: float = 3.0  # λ of the Gaussian prior on the modes (preprocessing's is 1.0): 1.0 gave 58.8 %,
     #   3.0 71.2 %, 10 62.1 % on the outside-model set
     robust_mm: float = 0.7  # Cauchy scale (mm): least squares instead gave 27.9 % on the outside-model set
-    fine_iterations: int = 0  # iterations instead of `iterations` for a face scanned finer than `fine_mm` (its
-    #   preprocessing's measured pitch, `quality.pitch_mm`); 0: `iterations` for every face. afm's default is 48
-    #   (`AFMConfig.refit`): the refit had not converged on laser scans (docs/model-methods.md)
+    fine_iterations: int = 48  # iterations instead of `iterations` for a face scanned finer than `fine_mm` (its
+    #   preprocessing's measured pitch, `quality.pitch_mm`); 0: `iterations` for every face. The refit had not
+    #   converged on laser scans: 48 chosen on a tuning set of outside-model faces (tune60-outside, afm 92.5 → 95.8 %,
+    #   morph-id 96.3 → 97.5 %); test60-outside afm 91.7 → 96.3 %, morph-id 92.5 → 99.2 %; on rap3df-2019's Kinect
+    #   faces 48 lost (afm tuning half 39.2 → 31.9 %), so coarser faces keep `iterations` (docs/model-methods.md)
     fine_mm: float = 1.5  # the pitch (mm) below which a scan counts as fine: a laser's 0.7 mm, not a depth camera's
     #   2.5-4 mm faces (the same bound as `preprocess.holes.HoleConfig.fine_mm`)
 
@@ -274,7 +276,8 @@ class MorphIDMatcher(Matcher[np.ndarray]):
 
     name = "morph-id"
     config_class = MorphIDConfig
-    added_options = {"refit": {"enabled": False}}  # templates stored before the robust refit (December 2026)
+    added_options = {"refit": {"enabled": False, "fine_iterations": 0}}  # templates stored before the robust refit
+    #   (December 2026), or before its longer run on fine faces (2026-12-06)
 
     def __init__(self, config: MorphIDConfig | None = None) -> None:
         self.config = MorphIDConfig() if config is None else config
