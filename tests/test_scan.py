@@ -42,6 +42,50 @@ def test_triangles_skip_invalid_pixels_and_long_edges():
     assert len(stepped.triangles()) == len(full) - 2 * 11
 
 
+
+def test_triangles_are_each_whole_block_half_in_order():
+    """Every triangle's three pixels are valid, 2x2-block neighbours and no edge is longer than the limit; every
+    block whose two halves qualify gives both, the upper (a, c, b) halves first, each group in row-major order."""
+    rng = np.random.default_rng(4)
+    xyz = np.dstack([*np.meshgrid(np.arange(30.0), np.arange(20.0)), rng.normal(0, 0.8, (20, 30))])
+    valid = rng.random((20, 30)) > 0.2
+    scan = FaceScan.from_range_image(xyz, valid)
+    idx = scan.index_image()
+    P = scan.points
+    ok = lambda i, j: i >= 0 and j >= 0 and np.linalg.norm(P[i] - P[j]) <= 1.6
+    upper, lower = [], []
+    for r in range(19):
+        for c in range(29):
+            a, b, cc, d = idx[r, c], idx[r, c + 1], idx[r + 1, c], idx[r + 1, c + 1]
+            if ok(a, cc) and ok(cc, b) and ok(b, a):
+                upper.append((a, cc, b))
+            if ok(b, cc) and ok(b, d) and ok(d, cc):
+                lower.append((b, cc, d))
+    expected = np.array(upper + lower, dtype=np.int64)
+    got = scan.triangles(max_edge=1.6)
+    assert 0 < len(upper) and 0 < len(lower) and len(expected) < 2 * 19 * 29  # some blocks are cut by the limit
+    assert got.dtype == np.int64 and np.array_equal(got, expected)
+    assert len(scan.triangles(max_edge=float("nan"))) == 0
+
+
+def test_column_bounds_are_numpys_column_min_and_max():
+    from facerec3d.scan import column_bounds
+
+    rng = np.random.default_rng(1)
+    for a in (rng.normal(size=(1000, 3)), rng.integers(-50, 50, (77, 2)).astype(np.int32), rng.normal(size=(1, 3))):
+        lo, hi = column_bounds(a)
+        assert lo.dtype == a.dtype and np.array_equal(lo, a.min(axis=0)) and np.array_equal(hi, a.max(axis=0))
+    with_nan = rng.normal(size=(10, 3))
+    with_nan[4, 1] = np.nan
+    assert np.isnan(column_bounds(with_nan)[0][1]) and np.isnan(column_bounds(with_nan)[1][1])
+    for bad in (np.zeros((0, 3)), np.zeros(5)):
+        try:
+            column_bounds(bad)
+        except ValueError as e:
+            assert "non-empty 2-D" in str(e)
+        else:
+            raise AssertionError(f"column_bounds of shape {bad.shape} did not refuse")
+
 def test_transformed_moves_points_normals_and_landmarks(cap):
     R = rotation_from_euler(20, -10, 5)
     t = np.array([1.0, 2.0, 3.0])

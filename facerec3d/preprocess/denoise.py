@@ -16,7 +16,7 @@ from scipy import ndimage
 
 from facerec3d.geometry.ball import within_ball
 from facerec3d.preprocess.sampling import Sampling
-from facerec3d.scan import FaceScan
+from facerec3d.scan import FaceScan, column_bounds
 
 
 @dataclass(frozen=True)
@@ -167,7 +167,8 @@ def dequantise(scan: FaceScan, raw: FaceScan, step_mm: float, center: np.ndarray
     near = within_ball(scan.points, center, radius_mm)
     if near.sum() < 10:
         return scan
-    lo_rc, hi_rc = scan.grid[near].min(axis=0), scan.grid[near].max(axis=0) + 1
+    lo_rc, hi_rc = column_bounds(scan.grid[near])
+    hi_rc = hi_rc + 1
     window = (slice(lo_rc[0], hi_rc[0]), slice(lo_rc[1], hi_rc[1]))
     xyz_s, valid = scan.to_range_image()
     xyz_r, valid_r = raw.to_range_image()

@@ -27,6 +27,7 @@ from scipy import ndimage
 
 from facerec3d.errors import FaceRec3DError
 from facerec3d.models import onnx_session
+from facerec3d.scan import column_bounds
 
 CELL_MM = 5.0  # the height map's cell (mm): a nose tip ~6 cells wide
 LOCAL_MM = 20.0  # σ of the neighbourhood a cell's height is measured against (mm)
@@ -58,7 +59,7 @@ class HeightMap:
 def height_map(points: np.ndarray, cell_mm: float = CELL_MM, max_cells: int = MAX_CELLS) -> HeightMap:
     """The nearest surface (largest z) of points (N, 3) per `cell_mm` cell of the x-y plane (module docstring)."""
     p = np.asarray(points, dtype=np.float64)
-    lo, hi = p[:, :2].min(axis=0), p[:, :2].max(axis=0)
+    lo, hi = column_bounds(p[:, :2])
     span = np.floor((hi - lo) / cell_mm).astype(int) + 1
     if (span > max_cells).any():  # a wide frame: keep the max_cells square around the nearest surfaces
         near = p[p[:, 2] >= np.quantile(p[:, 2], 0.9), :2].mean(axis=0)

@@ -21,7 +21,7 @@ from numba import njit
 
 from facerec3d.errors import FailureToAcquire
 from facerec3d.io.common import MAX_POINTS
-from facerec3d.scan import FaceScan
+from facerec3d.scan import FaceScan, column_bounds
 
 
 @dataclass(frozen=True)
@@ -201,7 +201,7 @@ def gridify(scan: FaceScan, resolution_mm: float = 0.0, edge_factor: float = 4.0
         spacing = spacing * np.sqrt(scan.n_points / MAX_TRIANGULATED)  # one point per cell of this size
         scan = front_points(scan, spacing)
     res = float(resolution_mm) if resolution_mm > 0 else spacing
-    lo, hi = scan.points[:, :2].min(axis=0), scan.points[:, :2].max(axis=0)
+    lo, hi = column_bounds(scan.points[:, :2])
     shape = (int(np.floor((hi[1] - lo[1]) / res)) + 1, int(np.floor((hi[0] - lo[0]) / res)) + 1)
     if shape[0] * shape[1] > MAX_POINTS:  # the grid's images would not fit in memory; no face is that large
         raise FailureToAcquire(f"the surface spans {shape[0]}×{shape[1]} cells of {res:.3g} mm, more than a face "

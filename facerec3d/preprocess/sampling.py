@@ -48,8 +48,9 @@ class Sampling:
 
 def _z_image(scan: FaceScan) -> np.ndarray:
     """The Z image of the scan's grid, NaN where no point is."""
-    xyz, valid = scan.to_range_image()
-    return np.where(valid, xyz[..., 2], np.nan)
+    z = np.full(scan.grid_shape, np.nan)
+    z[scan.grid[:, 0], scan.grid[:, 1]] = scan.points[:, 2]
+    return z
 
 
 ZERO_SHARE_OF_PITCH = 0.002  # neighbour depths closer than this × pitch count as equal (0.007 mm at a Kinect's

@@ -36,7 +36,7 @@ from numba import njit
 from facerec3d.geometry.normals import boundary_mask, estimate_normals
 from facerec3d.matching.base import Template
 from facerec3d.matching.icp.config import ICPConfig
-from facerec3d.scan import FaceScan
+from facerec3d.scan import FaceScan, column_bounds
 
 
 class GalleryIndex(NamedTuple):
@@ -83,8 +83,9 @@ class GalleryIndex(NamedTuple):
         h = float(config.voxel_size)
         reach = min(config.distance_start * resolution, max(config.max_reach_mm, config.distance_end * resolution))
         margin = reach + 0.5 * math.sqrt(3.0) * h
-        origin = pts.min(axis=0) - margin
-        nx, ny, nz = (np.ceil((pts.max(axis=0) + margin - origin) / h).astype(np.int64) + 1).tolist()
+        lo, hi = column_bounds(pts)
+        origin = lo - margin
+        nx, ny, nz = (np.ceil((hi + margin - origin) / h).astype(np.int64) + 1).tolist()
         column = (np.floor((pts[:, 0] - origin[0]) / h).astype(np.int64) * ny
                   + np.floor((pts[:, 1] - origin[1]) / h).astype(np.int64))
         order = np.argsort(column, kind="stable")
