@@ -97,6 +97,8 @@ _INTRINSICS_OPTION = click.option(
 @friendly
 def info(files, intrinsics):
     """Size, valid points, bounding box and resolution (mm) of scan FILES."""
+    import numpy as np
+
     from facerec3d.io import load_scan
 
     failed = 0
@@ -109,8 +111,10 @@ def info(files, intrinsics):
             continue
         lo, hi = s.bounding_box()
         grid = f"{s.grid_shape[0]}x{s.grid_shape[1]} grid, " if s.grid is not None else ""
-        click.echo(f"{f}: {grid}{s.n_points} valid points, bbox [{lo[0]:.1f} {lo[1]:.1f} {lo[2]:.1f}] .. "
-                   f"[{hi[0]:.1f} {hi[1]:.1f} {hi[2]:.1f}] mm, resolution {s.resolution():.2f} mm"
+        res = s.resolution()
+        spacing = f"resolution {res:.2f} mm" if np.isfinite(res) else "no resolution (a single point)"
+        click.echo(f"{f}: {grid}{s.n_points} valid point{'s' * (s.n_points != 1)}, bbox [{lo[0]:.1f} {lo[1]:.1f} "
+                   f"{lo[2]:.1f}] .. [{hi[0]:.1f} {hi[1]:.1f} {hi[2]:.1f}] mm, {spacing}"
                    + (f", {len(s.landmarks)} landmarks" if s.landmarks else ""))
     if failed:
         sys.exit(2)

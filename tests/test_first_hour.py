@@ -238,6 +238,22 @@ def test_info_lays_out_errors_as_every_command_does(tmp_path, frames):
     assert lines[2].startswith(f"{frames / '04200' / 'front_1.png'}: 212x256 grid")
 
 
+
+def test_info_of_a_single_point_says_so_instead_of_nan(tmp_path):
+    """A one-point array has no spacing to measure: "no resolution (a single point)", not "resolution nan mm"."""
+    import numpy as np
+
+    xyz = np.full((10, 10, 3), np.nan)
+    xyz[3, 3] = [1.0, 2.0, 3.0]
+    np.save(tmp_path / "one.npy", xyz)
+    xyz[3, 4] = [2.0, 2.0, 3.0]
+    np.save(tmp_path / "two.npy", xyz)
+    r = CliRunner().invoke(main, ["info", str(tmp_path / "one.npy"), str(tmp_path / "two.npy")])
+    assert r.exit_code == 0, r.output
+    one, two = r.output.splitlines()
+    assert "1 valid point," in one and one.endswith("no resolution (a single point)") and "nan" not in one
+    assert "2 valid points," in two and two.endswith("resolution 1.00 mm")
+
 def test_a_reason_that_falls_short_never_reads_as_a_pass():
     """Item 5: "tip 6 mm above its surroundings, a nose needs 6" was 5.6 mm rounded."""
     from facerec3d.errors import short_of
