@@ -45,6 +45,11 @@ RANGES: dict[str, tuple[float, float, bool]] = {
     "start_yaws": ANY,  # degrees, either way
 }
 
+#: Fields that name a file (a model): a relative path in a settings file is taken from that file's folder, as a
+#: user who keeps a model beside the file that names it expects, wherever the command runs from (from the working
+#: folder when no such file is there: the way settings files were read before 2026-12-06).
+FILE_FIELDS = frozenset({"proposer", "model"})
+
 
 #: The method `evaluate`, `enroll` and the service use when none is named: the z-score fusion of whole-face ICP,
 #: region ICP and the learned embedding (FusionConfig's defaults), chosen across every kind of data at once
@@ -136,7 +141,9 @@ def _check(hint, value, source, name: str, default=None):
     if hint is bool:
         return value if isinstance(value, bool) else fail("must be true or false")
     if hint is str:
-        return value if isinstance(value, str) else fail("must be a text")
+        if not isinstance(value, str):
+            fail("must be a text")
+        return _beside(value, source) if name.rsplit(".", 1)[-1] in FILE_FIELDS else value
     if hint in (int, float):
         if isinstance(value, bool) or not isinstance(value, (int, float)) or hint is int and not isinstance(value, int):
             fail("must be an integer" if hint is int else "must be a number")
@@ -153,6 +160,15 @@ def _check(hint, value, source, name: str, default=None):
             fail("must be a table")
         return {str(k): _check(args[1], v, source, f"{name}.{k}") for k, v in value.items()}
     raise TypeError(f"settings of type {hint} are not checked: add them to config._check")
+
+
+def _beside(path: str, source) -> str:
+    """A `FILE_FIELDS` value: a relative path resolved against the folder of the settings file `source` when the file
+    is there (an absolute path, "", "shipped" or a path found nowhere else stay as they are)."""
+    if not path or path == "shipped" or Path(path).is_absolute() or source is None or not Path(source).is_file():
+        return path
+    beside = Path(source).resolve().parent / path
+    return str(beside) if beside.is_file() else path
 
 
 def _in_range(hint: type, value: int | float, source, name: str) -> int | float:

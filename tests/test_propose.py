@@ -185,3 +185,30 @@ def test_settings_made_with_another_nose_proposer_model_are_refused():
     data["detect"]["proposer_sha256"] = "0" * 64
     with pytest.raises(ValueError, match=r"store\.db: made with another nose proposer model \(SHA-256 000000000000"):
         PreprocessConfig.from_dict(data, "store.db")
+
+
+def test_a_model_named_in_a_settings_file_is_found_beside_that_file(tmp_path, monkeypatch):
+    """`proposer = "nose.onnx"` in settings/pre.toml means settings/nose.onnx wherever the command runs from (it
+    meant ./nose.onnx, and failed with "no such file" from any other folder); the same for an embedding's model."""
+    import shutil
+
+    from facerec3d.config import read_settings
+    from facerec3d.matching.embedding import SHIPPED_MODEL, EmbeddingConfig
+
+    folder = tmp_path / "settings"
+    folder.mkdir()
+    shutil.copy(SHIPPED_PROPOSER, folder / "nose.onnx")
+    shutil.copy(SHIPPED_MODEL, folder / "emb.onnx")
+    (folder / "pre.toml").write_text('[detect]\nproposer = "nose.onnx"\n')
+    (folder / "emb.toml").write_text('model = "emb.onnx"\n')
+    elsewhere = tmp_path / "run"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert PreprocessConfig.load(folder / "pre.toml").detect.proposer == str((folder / "nose.onnx").resolve())
+    from facerec3d.config import from_dict
+
+    assert from_dict(EmbeddingConfig, read_settings(folder / "emb.toml")).model == str((folder / "emb.onnx").resolve())
+    (elsewhere / "cwd.onnx").write_bytes((folder / "nose.onnx").read_bytes())  # not beside the file: as before
+    (folder / "cwd.toml").write_text('[detect]\nproposer = "cwd.onnx"\n')
+    assert PreprocessConfig.load(folder / "cwd.toml").detect.proposer == "cwd.onnx"
+    assert PreprocessConfig.from_dict({"detect": {"proposer": "shipped"}}, folder / "pre.toml").detect.proposer == "shipped"
