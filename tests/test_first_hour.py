@@ -709,3 +709,31 @@ def test_a_single_point_is_counted_as_one(tmp_path):
     r = CliRunner().invoke(main, ["preprocess", str(tmp_path / "one.xyz"), "-o", str(tmp_path / "out"), "--jobs", "1"])
     assert r.exit_code == 1
     assert f"{tmp_path / 'one.xyz'}: failed: only 1 valid point\n" in r.output
+
+
+def test_a_file_name_that_is_not_utf8_is_one_failure_and_the_batch_goes_on(frames, tmp_path):
+    """A name whose bytes are not UTF-8 (Linux allows any) crashed enroll, identify and preprocess with a
+    UnicodeEncodeError (the cache key, the store, the landmarks CSV), losing the batch: now it is that file's
+    failure, shown with its bytes as \\xNN, and the other scans are enrolled or preprocessed."""
+    import os
+    import shutil
+
+    odd = tmp_path / os.fsdecode(b"x\xff.png")
+    shutil.copy(frames / "04200" / "front_1.png", odd)
+    shutil.copy(frames / "intrinsics.json", tmp_path / "intrinsics.json")
+    good = str(frames / "04201" / "front_1.png")
+    store = tmp_path / "g.sqlite"
+    r = CliRunner().invoke(main, ["enroll", str(odd), good, "--subject", "s", "--gallery", str(store), "--jobs", "1",
+                                  "--method", "icp", "--cache", str(tmp_path / "cache")])
+    assert r.exit_code == 0, r.output
+    assert "x\\xff.png: failed to enrol: the file name is not UTF-8 text" in r.output
+    assert "1 enrolled, 0 already enrolled, 1 failed to enrol" in r.output
+    listed = CliRunner().invoke(main, ["gallery", str(store), "list"]).output
+    assert "front_1.png" in listed and "failed\t" + str(tmp_path) + "/x\\xff.png\tthe file name" in listed
+    r = CliRunner().invoke(main, ["preprocess", str(odd), good, "-o", str(tmp_path / "out")])
+    assert r.exit_code == 0 and "1 kept, 1 failed" in r.output, r.output
+    rows = (tmp_path / "out" / "landmarks.csv").read_text(encoding="utf-8").splitlines()
+    assert rows[1].startswith(str(tmp_path) + "/x\\xff.png,the file name is not UTF-8") and ",ok," in rows[2]
+    r = CliRunner().invoke(main, ["identify", str(odd), "--gallery", str(store)])
+    assert r.exit_code == 2 and r.output.strip().endswith("x\\xff.png: the file name is not UTF-8 text (the bytes "
+                                                          "shown as \\x..): rename the file"), r.output

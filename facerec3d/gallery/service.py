@@ -24,7 +24,7 @@ from facerec3d.gallery.engine import Engine
 from facerec3d.gallery.store import AlreadyEnrolled, Entry, GalleryError, GalleryStore
 from facerec3d.io import scan_stem
 from facerec3d.matching.base import Matcher, Template
-from facerec3d.preprocess.batch import preprocess_file
+from facerec3d.preprocess.batch import preprocess_file, printable
 from facerec3d.preprocess.pipeline import PreprocessConfig
 from facerec3d.scan import FaceScan
 
@@ -162,7 +162,7 @@ def enroll_scans(store: GalleryStore, records: Sequence[ScanRecord], matcher: Ma
     todo = []
     enrolled_as = None  # source -> subject of its entry, read when a skipped record asks for a subject
     for r in records:
-        source = str(Path(r.path).resolve())
+        source = printable(Path(r.path).resolve())  # a file name that is not UTF-8 is stored as \\x.. text
         if source in done:
             report.skipped.append(source)
             if r.subject is not None:
@@ -211,7 +211,7 @@ def load_probe(store: GalleryStore, path: str | Path, config: PreprocessConfig |
     outcome = (preprocess_file(path, settings, cache, intrinsics) if engine is None
                else list(engine.preprocess([path], settings, cache=cache, intrinsics=intrinsics))[0])
     if outcome.face is None:
-        raise GalleryError(f"{path}: {outcome.error}")
+        raise GalleryError(f"{printable(path)}: {outcome.error}")
     return outcome.face
 
 

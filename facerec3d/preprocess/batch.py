@@ -60,6 +60,17 @@ def code_stamp(package: Path = PACKAGE) -> str:
     return digest.hexdigest()
 
 
+def printable(path: str | Path) -> str:
+    """A path as UTF-8 text: itself, or for a file name that is not UTF-8 (its bytes held as surrogates by Python)
+    those bytes written as \\xNN, which any report or store can hold."""
+    text = str(path)
+    try:
+        text.encode("utf-8")
+        return text
+    except UnicodeEncodeError:
+        return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
 def cache_key(path: str | Path, config: PreprocessConfig, intrinsics: str | Path | None = None) -> str:
     """The cache key of a file under a configuration (path, size, mtime, settings and `code_stamp`; for a depth frame
     also the intrinsics file it is read with, by content)."""
@@ -72,7 +83,7 @@ def cache_key(path: str | Path, config: PreprocessConfig, intrinsics: str | Path
         find_intrinsics(p) if scan_suffix(p) in DEPTH_SUFFIXES + (".npy",) else None)
     if camera is not None and Path(camera).is_file():
         text += "|" + Path(camera).read_bytes().hex()
-    return hashlib.sha1(text.encode()).hexdigest()
+    return hashlib.sha1(text.encode("utf-8", "surrogateescape")).hexdigest()
 
 
 def preprocess_file(path: str | Path, config: PreprocessConfig = PreprocessConfig(),
@@ -83,6 +94,8 @@ def preprocess_file(path: str | Path, config: PreprocessConfig = PreprocessConfi
     from facerec3d.io import load_scan
 
     t0 = time.perf_counter()
+    if (shown := printable(path)) != str(path):  # every report and store holds names as UTF-8 text
+        return Outcome(shown, None, "the file name is not UTF-8 text (the bytes shown as \\x..): rename the file")
     stored = None
     if cache is not None and Path(path).is_file():
         stored = Path(cache) / cache_key(path, config, intrinsics)
