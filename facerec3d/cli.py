@@ -455,6 +455,8 @@ def _enroll_remote(server, api_key, records, jobs, preprocess_locally=False, int
                 return "skipped"
             if e.status in (413, 415, 422):
                 return e.reason.removeprefix("failure to enrol: ").removeprefix(f"{Path(record.path).name}: ")
+            if e.status >= 500:  # this scan's: the service answers the next (a refused key or a lost service stops)
+                return f"service error {e.status}: {e.reason}"
             raise
         except FaceRec3DError as e:  # preprocessing here: unreadable, or no face found
             return f"{getattr(e, 'reason', e)} (preprocessed locally)"
@@ -481,6 +483,8 @@ def _enroll_remote(server, api_key, records, jobs, preprocess_locally=False, int
                                   intrinsics)
     click.echo(f"{counts['enrolled']} enrolled, {counts['skipped']} already enrolled, {counts['failed']} failed "
                f"to enrol; {server}: {st['entries']} entries")
+    if counts["failed"] and not counts["enrolled"] and not counts["skipped"]:
+        sys.exit(1)  # nothing succeeded, as a local enrolment
 
 
 def _keeps_given_threshold(kept: dict | None, where: str, entries: int | None = None) -> bool:

@@ -391,6 +391,8 @@ def test_cli_against_the_service(setup):
     assert "2 enrolled, 0 already enrolled, 1 failed to enrol" in r.output and "broken.abs" in r.output
     r = run.invoke(main, ["enroll", str(scans[0]), "--server", url, "--subject", "s30"])
     assert "0 enrolled, 1 already enrolled" in r.output
+    r = run.invoke(main, ["enroll", str(bad), "--server", url, "--subject", "s30"])  # nothing succeeded: exit 1
+    assert r.exit_code == 1 and "0 enrolled, 0 already enrolled, 1 failed to enrol" in r.output, r.output
     r = run.invoke(main, ["identify", str(probe_file(tmp, 30, 3)), "--server", url, "-k", "2", "--cascade"])
     assert r.exit_code == 0, r.output
     assert r.output.splitlines()[1].split()[:2] == ["1", "s30"] and len(r.output.splitlines()) == 3
@@ -679,3 +681,29 @@ def test_connections_to_the_bound_address_send_without_nagles_delay():
 
     asyncio.run(serve_one())
     assert nodelay and nodelay[0] != 0
+
+
+def test_a_service_error_on_one_scan_is_its_failure_and_the_enrolment_goes_on(setup, monkeypatch):
+    """A 5xx answer to one upload stopped `enroll --server` with no summary (the other scans' results untallied):
+    now it is that scan's failure; a refused key still stops the command."""
+    from facerec3d.client import Client, ServiceError
+
+    tmp, url = setup["tmp"], setup["url"]
+    scans = [probe_file(tmp, 31, 1), probe_file(tmp, 31, 2)]
+    real = Client.enrol
+
+    def flaky(self, scan, *args, **kwargs):
+        if str(scan).endswith(scans[0].name):
+            raise ServiceError(500, "internal error (RuntimeError): boom")
+        return real(self, scan, *args, **kwargs)
+
+    monkeypatch.setattr(Client, "enrol", flaky)
+    run = CliRunner(env={"FACEREC3D_API_KEY": setup["key"]["alice"]})
+    r = run.invoke(main, ["enroll", *map(str, scans), "--server", url, "--subject", "s31", "--no-calibrate"])
+    assert r.exit_code == 0, r.output
+    assert f"{scans[0]}: failed to enrol: service error 500: internal error (RuntimeError): boom" in r.output
+    assert "1 enrolled, 0 already enrolled, 1 failed to enrol" in r.output
+    r = run.invoke(main, ["enroll", str(scans[0]), "--server", url, "--subject", "s31", "--no-calibrate"])
+    assert r.exit_code == 1 and "0 enrolled, 0 already enrolled, 1 failed to enrol" in r.output, r.output
+    monkeypatch.setattr(Client, "enrol", real)
+    assert run.invoke(main, ["gallery", "--server", url, "remove", "s31"]).exit_code == 0
