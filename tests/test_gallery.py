@@ -73,6 +73,34 @@ def test_round_trip_settings_and_removal(tmp_path):
         GalleryStore(tmp_path / "junk.sqlite")
 
 
+
+def test_another_programs_sqlite_database_is_refused_and_left_untouched(tmp_path):
+    """Reading (stats, list, identify) or enrolling into an SQLite file of another program added the store's tables
+    to it and switched its journal to WAL: now it is refused by name, byte for byte as it was."""
+    other = tmp_path / "notes.db"
+    db = sqlite3.connect(other)
+    db.execute("CREATE TABLE notes (x)")
+    db.execute("INSERT INTO notes VALUES (1)")
+    db.commit()
+    db.close()
+    before = other.read_bytes()
+    for create in (False, True):
+        with pytest.raises(GalleryError, match=r"notes\.db: not a gallery store \(an SQLite database of other "
+                                               r"tables: notes\)"):
+            GalleryStore(other, create=create)
+    assert other.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["notes.db"]
+    blank = tmp_path / "blank.db"  # a database with no table yet: a reader refuses it, an enrolment makes a store
+    db = sqlite3.connect(blank)
+    db.execute("CREATE TABLE t (x)")
+    db.execute("DROP TABLE t")
+    db.commit()
+    db.close()
+    assert blank.stat().st_size > 0
+    with pytest.raises(GalleryError, match="an empty database, not a gallery"):
+        GalleryStore(blank)
+    with GalleryStore(blank, create=True) as store:
+        assert store.stats()["entries"] == 0
+
 def test_a_scan_name_of_several_people_is_never_removed_as_all_of_them(tmp_path):
     """Every person a depth camera enrols has a `front_1`: removing by that name is refused (nothing removed) and
     names the way to remove one entry, by its id (`--entry`), which is also what a damaged entry's message says."""

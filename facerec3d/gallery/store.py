@@ -240,6 +240,13 @@ class GalleryStore:
                 raise GalleryError(f"{self.path}: cannot make the gallery ({e.strerror})") from None
         try:
             self._db = sqlite3.connect(self.path, isolation_level=None, timeout=30.0)
+            tables = {row[0] for row in self._db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+            if "meta" not in tables:  # another program's database is left as it is (no tables or journal mode added)
+                if tables - {"sqlite_sequence"}:
+                    raise GalleryError(f"{self.path}: not a gallery store (an SQLite database of other tables: "
+                                       f"{', '.join(sorted(tables))[:120]})")
+                if not create:
+                    raise GalleryError(f"{self.path}: an empty database, not a gallery (enrol into it first)")
             self._db.execute("PRAGMA foreign_keys = ON")
             self._db.execute("PRAGMA journal_mode = WAL")
             fmt = self._meta("format")
