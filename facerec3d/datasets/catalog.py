@@ -195,11 +195,20 @@ def read_manifest(path: str | Path) -> Dataset:
     if not rows or not {"path", "subject"} <= set(rows[0]):
         raise DatasetError(f"{path}: a manifest needs a header with at least the columns path,subject")
     records = []
+    seen: dict[Path, int] = {}  # each file's line: a file listed twice would be compared with itself
     for line, row in enumerate(rows, start=2):
-        if not row.get("path") or not row.get("subject"):
+        subject = (row.get("subject") or "").strip()
+        if not (row.get("path") or "").strip() or not subject:
             raise DatasetError(f"{path}, line {line}: empty path or subject")
+        if any(c.isspace() for c in subject):
+            raise DatasetError(f"{path}, line {line}: subject {subject!r} holds white space, which score files "
+                               "cannot (their fields are separated by it): name it without, e.g. "
+                               f"{'_'.join(subject.split())!r}")
         p = Path(row["path"])
         p = p if p.is_absolute() else path.parent / p
+        if (twice := seen.setdefault(p.resolve(), line)) != line:
+            raise DatasetError(f"{path}, line {line}: {row['path']} is listed on line {twice} already (a scan "
+                               "listed twice would be compared with itself)")
         label = row.get("label") or row.get("expression") or None
         expression = _expression_class(row.get("expression"))
         role = (row.get("role") or "").strip().lower() or None
@@ -210,7 +219,7 @@ def read_manifest(path: str | Path) -> Dataset:
             named = _bosphorus_record(p)  # a Bosphorus file: its type and label from its name, as in its folder
             kind, label, expression = named.kind, named.label, expression or named.expression
         session = (row.get("session") or "").strip() or _frgc_session(p)
-        records.append(ScanRecord(p, row["subject"].strip(), scan_stem(p), expression, kind, label,
+        records.append(ScanRecord(p, subject, scan_stem(p), expression, kind, label,
                                   session, role, (row.get("pose") or "").strip() or None))
     return Dataset(tuple(records), "manifest", path)
 
