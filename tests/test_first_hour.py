@@ -737,3 +737,27 @@ def test_a_file_name_that_is_not_utf8_is_one_failure_and_the_batch_goes_on(frame
     r = CliRunner().invoke(main, ["identify", str(odd), "--gallery", str(store)])
     assert r.exit_code == 2 and r.output.strip().endswith("x\\xff.png: the file name is not UTF-8 text (the bytes "
                                                           "shown as \\x..): rename the file"), r.output
+
+
+
+def test_subjects_with_white_space_are_evaluated_and_written_percent_encoded(frames, tmp_path):
+    """A manifest naming people 'person 04200' crashed `evaluate` on writing its score file, after all the work:
+    the score file now holds 'person%2004200' (one field), the other outputs the name as it is."""
+    import csv
+
+    rows = list(csv.DictReader((frames / "manifest.csv").open()))
+    manifest = frames / "spaced.csv"
+    with manifest.open("w", newline="") as f:
+        w = csv.DictWriter(f, rows[0].keys())
+        w.writeheader()
+        w.writerows({**r, "subject": "person " + r["subject"]} for r in rows)
+    out = tmp_path / "run"
+    r = CliRunner().invoke(main, ["evaluate", str(manifest), "--method", "icp", "--out", str(out), "--jobs", "1",
+                                  "--bootstrap", "0", "--cache", str(tmp_path / "cache")])
+    manifest.unlink()
+    assert r.exit_code == 0, r.output
+    first = (out / "scores.txt").read_text().split("\n")[0].split(" ")
+    assert first[0].startswith("person%20042") and first[1] == "person%2004200" and len(first) == 4
+    probes = list(csv.DictReader((out / "probes.csv").open()))
+    assert {p["subject"] for p in probes} == {"person 04200", "person 04201", "person 04202"}
+    assert all(p["rank"] == "1" for p in probes)  # the same frames as the `run` fixture's: each found first

@@ -5,7 +5,8 @@ import pytest
 
 from facerec3d.evaluation.metrics import (cmc, det, eer, open_set, rank_k, roc, split_scores, summarize,
                                           verification_rate)
-from facerec3d.evaluation.scorefile import read_score_rows, read_scores, write_scores
+from facerec3d.errors import InputError
+from facerec3d.evaluation.scorefile import read_score_matrix, read_score_rows, read_scores, write_scores
 from tests.conftest import check_against_pyeer
 
 nan = np.nan
@@ -195,8 +196,22 @@ def test_score_file_round_trip(tmp_path):
 
 
 def test_score_file_errors(tmp_path):
-    with pytest.raises(ValueError, match="white space"):
-        write_scores(tmp_path / "s.txt", [[1.0]], ["a b"], ["x"], ["a"])
+    with pytest.raises(ValueError, match="gallery id is empty"):
+        write_scores(tmp_path / "s.txt", [[1.0]], ["a"], ["x"], [""])
+    # ids with white space (a bob CSV's, a manifest's "person a") stay one field each, percent-encoded, and distinct
+    write_scores(tmp_path / "s.txt", [[1.0, 0.5, 0.2]], ["person a"], ["x y"], ["person a", "person%20a", "b\tc"])
+    assert (tmp_path / "s.txt").read_text().splitlines() == [
+        "person%20a person%20a x%20y 1.0", "person%2520a person%20a x%20y 0.5", "b%09c person%20a x%20y 0.2"]
+    genuine, impostor = read_scores(tmp_path / "s.txt")
+    assert genuine.tolist() == [1.0] and impostor.tolist() == [0.5, 0.2]
+    latin = tmp_path / "latin1.txt"
+    latin.write_bytes("Jos\xe9 Jos\xe9 p1 1.0\n".encode("latin-1"))
+    with pytest.raises(InputError, match=r"latin1\.txt: not UTF-8 text \(a byte b'\\xe9'\): save it as UTF-8"):
+        read_score_rows(latin)
+    wide = tmp_path / "wide.csv"
+    wide.write_text("probe_subject_id,probe_template_id,bio_ref_subject_id,score\na," + "x" * 200_000 + ",a,1\n")
+    with pytest.raises(InputError, match=r"wide\.csv: not a readable CSV file \(field larger than field limit"):
+        read_score_matrix(wide, "csv")
     bad = tmp_path / "bad.txt"
     bad.write_text("A A a1 0.5\n\nA B b1 zero\n")
     with pytest.raises(ValueError, match="bad.txt:3"):

@@ -23,6 +23,7 @@ import re
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
+from urllib.parse import quote
 
 from facerec3d.errors import FaceRec3DError
 from facerec3d.io import scan_stem
@@ -89,7 +90,13 @@ class Dataset:
             rel = record.path.relative_to(self.root).as_posix()
         except ValueError:
             rel = record.path.as_posix()
-        return re.sub(r"[\s%]", lambda m: f"%{ord(m[0]):02X}", rel)
+        return one_field(rel)
+
+
+def one_field(text: str) -> str:
+    """`text` as one field of a white-space separated score file: its white space and `%` percent-encoded as
+    URLs are (UTF-8 bytes: "person a" -> "person%20a"), so that different texts stay different."""
+    return re.sub(r"[\s%]", lambda m: quote(m[0], safe=""), text)
 
 
 def open_dataset(source: str | Path) -> Dataset:
@@ -200,10 +207,6 @@ def read_manifest(path: str | Path) -> Dataset:
         subject = (row.get("subject") or "").strip()
         if not (row.get("path") or "").strip() or not subject:
             raise DatasetError(f"{path}, line {line}: empty path or subject")
-        if any(c.isspace() for c in subject):
-            raise DatasetError(f"{path}, line {line}: subject {subject!r} holds white space, which score files "
-                               "cannot (their fields are separated by it): name it without, e.g. "
-                               f"{'_'.join(subject.split())!r}")
         p = Path(row["path"])
         p = p if p.is_absolute() else path.parent / p
         if (twice := seen.setdefault(p.resolve(), line)) != line:

@@ -28,6 +28,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from facerec3d.datasets.catalog import one_field
 from facerec3d.errors import InputError
 
 
@@ -41,11 +42,12 @@ class ScoreRows(NamedTuple):
 
 
 def _fields(values: Sequence, what: str) -> list[str]:
-    """Labels as str, refusing ones that would break the white-space separated format."""
-    out = [str(v) for v in values]
+    """Labels as fields of the white-space separated format (`one_field`: "person a" -> "person%20a"); an empty one
+    is refused."""
+    out = [one_field(str(v)) for v in values]
     for v in out:
-        if not v or any(c.isspace() for c in v):
-            raise ValueError(f"{what} {v!r} is empty or contains white space")
+        if not v:
+            raise ValueError(f"{what} is empty")
     return out
 
 
@@ -89,7 +91,7 @@ def read_score_rows(path: str | Path) -> ScoreRows:
 def _read_columns(path: str | Path, n: int) -> list[np.ndarray]:
     """The n white-space separated columns of a score file (str, the last float); blank lines skipped."""
     cols: list[list] = [[] for _ in range(n)]
-    with open(path, encoding="utf-8") as f:
+    with _text(path) as f:
         for line_no, line in enumerate(f, 1):
             parts = line.split()
             if not parts:
@@ -105,6 +107,24 @@ def _read_columns(path: str | Path, n: int) -> list[np.ndarray]:
             for col, value in zip(cols, parts):
                 col.append(value)
     return [np.array(c, dtype=str) for c in cols[:-1]] + [np.array(cols[-1], dtype=float)]
+
+
+class _text:
+    """A score file opened as UTF-8 text; a byte that is not UTF-8 is one InputError naming the file and where."""
+
+    def __init__(self, path: str | Path, newline: str | None = None):
+        self.path, self.newline = path, newline
+
+    def __enter__(self):
+        self.f = open(self.path, encoding="utf-8", newline=self.newline)
+        return self.f
+
+    def __exit__(self, kind, error, trace):
+        self.f.close()
+        if isinstance(error, UnicodeDecodeError):
+            raise InputError(f"{self.path}: not UTF-8 text (a byte {error.object[error.start:error.start + 1]!r}): "
+                             "save it as UTF-8") from None
+        return False
 
 
 def read_scores(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -134,15 +154,18 @@ class ScoreMatrix(NamedTuple):
 
 
 def _csv_columns(path: str | Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray, np.ndarray]:
-    with open(path, newline="", encoding="utf-8") as f:
-        reader = csv.DictReader(f)
-        header = reader.fieldnames or []
-        chosen = {role: next((c for c in names if c in header), None) for role, names in CSV_COLUMNS.items()}
-        missing = [f"{role} ({' or '.join(CSV_COLUMNS[role])})" for role, c in chosen.items()
-                   if c is None and role != "model_label"] + ([] if "score" in header else ["score"])
-        if missing:
-            raise InputError(f"{path}: not a bob CSV score file: no column for {', '.join(missing)}")
-        rows = list(reader)
+    with _text(path, newline="") as f:
+        try:
+            reader = csv.DictReader(f)
+            header = reader.fieldnames or []
+            chosen = {role: next((c for c in names if c in header), None) for role, names in CSV_COLUMNS.items()}
+            missing = [f"{role} ({' or '.join(CSV_COLUMNS[role])})" for role, c in chosen.items()
+                       if c is None and role != "model_label"] + ([] if "score" in header else ["score"])
+            if missing:
+                raise InputError(f"{path}: not a bob CSV score file: no column for {', '.join(missing)}")
+            rows = list(reader)
+        except csv.Error as e:  # a field over the csv module's limit, a NUL byte
+            raise InputError(f"{path}: not a readable CSV file ({e})") from None
     try:
         score = np.array([float(r["score"]) for r in rows])
     except (TypeError, ValueError) as e:
