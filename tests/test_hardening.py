@@ -277,6 +277,32 @@ def test_cli_on_a_damaged_gallery_is_one_line_never_a_crash(data, tmp_path):
         assert "is damaged: array 'voxel_index': checksum mismatch" in r.output and "Traceback" not in r.output
 
 
+def test_damaged_method_settings_of_a_store_are_one_line_naming_it(data, tmp_path):
+    """A store whose `options` or `state` is not a JSON table, or whose `method` is unknown, gave a JSONDecodeError
+    traceback (stats, verify, identify) or an error not naming the store."""
+    import shutil
+
+    store = tmp_path / "g.sqlite"
+    assert enroll(data["scans"][:2], data, store).exit_code == 0
+    probe = str(data["scans"][2])
+    for key, value, reason in (("options", "{bad", "damaged options setting (not JSON: "),
+                               ("options", "[1]", "damaged options setting (a list, not a table)"),
+                               ("state", "{bad", "damaged state setting (not JSON: "),
+                               ("method", "{bad", "damaged method settings (unknown method '{bad'")):
+        bad = tmp_path / f"{key}.sqlite"
+        shutil.copy(store, bad)
+        db = sqlite3.connect(bad)
+        db.execute("UPDATE meta SET value = ? WHERE key = ?", (value, key))
+        db.commit()
+        db.close()
+        for args in ([] if key != "options" else [["gallery", str(bad), "stats"]]) + [
+                ["verify", probe, "--gallery", str(bad), "--claim", data["subjects"][0], "--threshold", "-3"],
+                ["identify", probe, "--gallery", str(bad), "--jobs", "1"]]:
+            r = CliRunner().invoke(main, [*args, "--cache", str(data["cache"])] if args[0] != "gallery" else args)
+            assert r.exit_code == 2 and "Traceback" not in r.output, (key, args, r.output)
+            assert r.output.startswith(f"error: {bad}: {reason}"), (key, args, r.output)
+
+
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(name=st.sampled_from(["points", "normals", "voxel_index", "bucket_start", "voxel_offset"]),
        where=st.floats(0, 1), how=st.sampled_from(["flip", "truncate", "extend"]))

@@ -451,7 +451,7 @@ class GalleryStore:
     @_sqlite_errors
     def check_matcher(self, matcher: Matcher) -> None:
         """Refuse a matcher whose method or options are not the gallery's."""
-        method, options = self._require("method"), json.loads(self._require("options"))
+        method, options = self._require("method"), self._settings("options")
         if matcher.name != method or json.loads(json.dumps(matcher.options())) != options:
             raise GalleryError(f"{self.path}: the gallery was enrolled with method {method!r} and options "
                                f"{options}, not {matcher.name!r} with {matcher.options()}")
@@ -459,18 +459,34 @@ class GalleryStore:
     @_sqlite_errors
     def matcher(self) -> Matcher:
         """The matcher the gallery was enrolled with (method, options and what it learnt)."""
-        matcher = stored_matcher(self._require("method"), json.loads(self._require("options")))
+        try:
+            matcher = stored_matcher(self._require("method"), self._settings("options"))
+        except GalleryError:
+            raise
+        except (FaceRec3DError, ValueError, TypeError) as e:  # an unknown method, options this version refuses
+            raise GalleryError(f"{self.path}: damaged method settings ({e})") from None
         arrays = {}
         for name, *rest in self._db.execute("SELECT name, dtype, shape, data, checksum FROM model_arrays"):
             try:
                 arrays[name] = self._loaded("model_arrays", None, name, *rest)
             except ValueError as e:
                 raise GalleryError(f"{self.path}: the matcher's learnt array {name!r} is damaged: {e}") from None
-        state = json.loads(self._require("state"))
+        state = self._settings("state")
         if arrays or state:
             restore_state(matcher, arrays, state,
                           lambda why: GalleryError(f"{self.path}: the matcher's learnt state is not usable: {why}"))
         return matcher
+
+    def _settings(self, key: str) -> dict:
+        """A stored JSON table of settings (the matcher's `options`, its learnt `state`); GalleryError naming the
+        store when it is not one."""
+        try:
+            value = json.loads(self._require(key))
+        except (ValueError, RecursionError) as e:
+            raise GalleryError(f"{self.path}: damaged {key} setting (not JSON: {e})") from None
+        if not isinstance(value, dict):
+            raise GalleryError(f"{self.path}: damaged {key} setting (a {type(value).__name__}, not a table)")
+        return value
 
     def _require(self, key: str) -> str:
         value = self._meta(key)
@@ -605,7 +621,7 @@ class GalleryStore:
             "SELECT COUNT(*), COUNT(DISTINCT subject), COALESCE(SUM(nbytes), 0) FROM entries").fetchone()
         return {"entries": n, "subjects": subjects, "template_bytes": nbytes,
                 "file_bytes": self.path.stat().st_size, "failures_to_enrol": len(self.failures()),
-                "method": self._meta("method"), "options": json.loads(self._meta("options") or "null"),
+                "method": self._meta("method"), "options": self._settings("options") if self._meta("options") else None,
                 "threshold": self.threshold()}
 
 
