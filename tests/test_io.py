@@ -351,6 +351,9 @@ BAD_FILES = [
      "truncated PLY: header promises 2 vertices, the file holds only 1"),
     ("bad.ply", b"ply\nformat ascii 1.0\nelement vertex 2x\nproperty float x\nend_header\n1\n",
      "bad PLY header: the count of element 'vertex' is '2x', not a number"),
+    ("bad.ply", "ply\nformat ascii 1.0\nelement vertex \u00b2\nproperty float x\nproperty float y\n"
+     "property float z\nend_header\n1 2 3\n4 5 6\n".encode(),  # a digit to str.isdigit, not to int()
+     "bad PLY header: the count of element 'vertex' is '\u00b2', not a number"),
     ("bad.ply", b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nelement face 3\n"
      b"property list uchar int vertex_indices\nend_header\n1\n3 0 0 0\n",
      "truncated PLY: header promises 3 face elements, the file holds only 1"),

@@ -40,7 +40,7 @@ def _check_ply_header(path: str | Path) -> None:
         raise ScanFormatError(path, "not a PLY file (no 'ply' magic or no 'end_header')")
     for name, count in PLY_ELEMENT_LINE.findall(head[:end]):
         name, count = name[:20].decode(errors="replace"), count[:20].decode(errors="replace")
-        if not count.isdigit():
+        if not (count.isascii() and count.isdigit()):  # "²" is a digit to str.isdigit, not to int()
             raise ScanFormatError(path, f"bad PLY header: the count of element {name!r} is {count!r}, not a number")
         if int(count) > size:
             raise _truncated(path, name, count, f"fewer ({size} bytes in all)")
