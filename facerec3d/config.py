@@ -77,6 +77,10 @@ def read_settings(path: str | Path) -> Settings:
         data = json.loads(text) if kind == "JSON" else tomllib.loads(text)
     except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as e:
         raise SettingsError(path, None, f"not valid {kind}: {e}".splitlines()[0]) from None
+    except ValueError:  # Python's limit on the digits of an integer (4,300)
+        raise SettingsError(path, None, f"not usable {kind}: a number of thousands of digits") from None
+    except RecursionError:
+        raise SettingsError(path, None, f"not usable {kind}: lists or tables nested thousands deep") from None
     except OSError as e:
         raise SettingsError(path, None, f"cannot read ({e.strerror or e})") from None
     if not isinstance(data, dict):

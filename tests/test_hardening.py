@@ -431,6 +431,8 @@ def test_cache_entries_are_written_atomically(data, tmp_path, monkeypatch):
     ('[detect]\nring_mm = [20]\n', "detect.ring_mm: must be a list of 2"),
     ('resample = 3\n', "resample: must be a table of ResampleConfig settings"),
     ('crop_radius_mm = \n', "not valid TOML"),
+    ("crop_radius_mm = " + "1" * 5000 + "\n", "not usable TOML: a number of thousands of digits"),
+    ("a = " + "[" * 100_000 + "]" * 100_000 + "\n", "not usable TOML: lists or tables nested thousands deep"),
 ])
 def test_preprocessing_settings_are_checked_field_by_field(tmp_path, text, where):
     path = tmp_path / "bad.toml"
@@ -438,6 +440,17 @@ def test_preprocessing_settings_are_checked_field_by_field(tmp_path, text, where
     with pytest.raises(SettingsError) as e:
         PreprocessConfig.load(path)
     assert str(e.value).startswith(f"{path}: {where}") and "\n" not in str(e.value)
+
+
+def test_a_json_settings_file_of_absurd_numbers_or_depth_is_one_line(tmp_path):
+    from facerec3d.config import read_settings
+
+    for text, where in (('{"max_iterations": ' + "1" * 5000 + "}", "a number of thousands of digits"),
+                        ("[" * 100_000 + "]" * 100_000, "lists or tables nested thousands deep")):
+        (tmp_path / "bad.json").write_text(text)
+        with pytest.raises(SettingsError) as e:
+            read_settings(tmp_path / "bad.json")
+        assert str(e.value) == f"{tmp_path / 'bad.json'}: not usable JSON: {where}"
 
 
 def test_a_partial_table_changes_only_what_it_names(tmp_path):
