@@ -141,13 +141,13 @@ def convert(src, dst):
 @click.option("--format", "fmt", type=click.Choice(["abs", "bnt", "png"]), default="abs", show_default=True,
               help="FRGC (.abs.gz in nd1/<session>/) or Bosphorus (.bnt) layout, or a depth camera's 16-bit frames "
                    "(<subject>/front_1.png, ... with intrinsics.json).")
-@click.option("--seed", default=0, show_default=True)
-@click.option("--first-subject", default=0, show_default=True,
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0))
+@click.option("--first-subject", default=0, show_default=True, type=click.IntRange(min=0),
               help="Number of the first subject: a training set disjoint from the default test set starts at, "
                    "say, 1000 (identities depend on seed and subject number).")
 @click.option("--expressions", help="Comma-separated expressions drawn for the expression scans "
               "(of smile, open-mouth, surprise, frown, puffed-cheeks; default all).")
-@click.option("--expression-strength", nargs=2, type=float, default=(0.6, 1.0), show_default=True,
+@click.option("--expression-strength", nargs=2, type=click.FloatRange(0.0, 1.0), default=(0.6, 1.0), show_default=True,
               help="Range (low high) of the expression strength; 1 1 is full strength.")
 @click.option("--sensor", type=click.Choice(["frgc", "kinect-v2", "kinect-v2-8bit", "realsense"]), default="frgc",
               show_default=True, help="Simulated depth sensor: FRGC's Minolta laser scanner, Kinect v2 time of "

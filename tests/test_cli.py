@@ -41,6 +41,22 @@ def test_synth_never_overwrites_a_dataset_unasked(tmp_path):
     assert (out / "notes.txt").read_text() == "mine"  # not the dataset's: left alone
 
 
+@pytest.mark.parametrize("args, said", [
+    (["--seed", "-1"], "error: Invalid value for '--seed': -1 is not in the range x>=0."),
+    (["--first-subject", "-5"], "error: Invalid value for '--first-subject': -5 is not in the range x>=0."),
+    (["--expression-strength", "50", "50"], "error: Invalid value for '--expression-strength': 50.0 is not in the "
+                                            "range 0.0<=x<=1.0."),
+    (["--expression-strength", "nan", "nan"], "error: expression strength nan nan: give a range 0 <= low <= high"),
+    (["--expression-strength", "0.9", "0.5"], "error: expression strength 0.9 0.5: give a range 0 <= low <= high"),
+])
+def test_synth_refuses_seeds_and_strengths_it_cannot_make_faces_of(tmp_path, args, said):
+    """Negative seeds crashed (NumPy's ValueError), a NaN strength overflowed, and a strength of 50 wrote faces
+    444 mm wide without a word: each is one line, exit code 2, and nothing is written."""
+    r = CliRunner().invoke(main, ["synth", str(tmp_path / "s"), "--subjects", "2", "--scans", "2", *args])
+    assert r.exit_code == 2 and r.output.startswith(said) and r.output.count("\n") == 1, r.output
+    assert not (tmp_path / "s").exists()
+
+
 def test_usage_errors_are_one_line_naming_the_help_to_read(tmp_path):
     for args, said in ((["synth", str(tmp_path / "s"), "--subjects", "0"], "Invalid value for '--subjects'"),
                        (["verify"], "Missing argument 'PROBE'"), (["nosuch"], "No such command 'nosuch'")):

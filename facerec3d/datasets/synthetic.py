@@ -670,6 +670,12 @@ def plan_dataset(cfg: DatasetConfig) -> list[ScanSpec]:
     unknown = set(cfg.expressions) - set(EXPRESSIONS)
     if unknown or not cfg.expressions:
         raise InputError(f"unknown expressions {sorted(unknown)}: use some of {', '.join(EXPRESSIONS)}")
+    low, high = cfg.expression_strength
+    if not 0.0 <= low <= high <= 1.0:  # nan fails too; beyond 1 the blendshapes tear the face (a 444 mm wide smile)
+        raise InputError(f"expression strength {low:g} {high:g}: give a range 0 <= low <= high <= 1 (1 1: full "
+                         "strength)")
+    if cfg.seed < 0 or cfg.first_subject < 0:
+        raise InputError(f"seed {cfg.seed} and first subject {cfg.first_subject} must be 0 or more")
     occluders = cfg.identity.occluders
     if not occluders:
         raise ValueError("identity.occluders is empty: give (None,) for no occluders")
