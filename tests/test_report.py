@@ -99,6 +99,10 @@ def test_compare_runs_names_folder_without_metrics(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError, match="empty"):
         compare_runs([tmp_path / "a", tmp_path / "empty"], tmp_path / "cmp")
+    (tmp_path / "list").mkdir()  # JSON, but not a run's metrics: one line, not an AttributeError
+    (tmp_path / "list" / "metrics.json").write_text("[]")
+    with pytest.raises(ValueError, match=r"list/metrics\.json: not a metrics file \(a JSON list, not an object\)"):
+        compare_runs([tmp_path / "a", tmp_path / "list"], tmp_path / "cmp")
 
 
 def test_histogram_counts_every_score_as_the_table_does(tmp_path):

@@ -29,8 +29,10 @@ def _load(run_dir: Path) -> tuple[dict, dict[str, np.ndarray]]:
         raise InputError(f"{run_dir}: not a run folder (no metrics.json)")
     try:
         metrics = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as e:
         raise InputError(f"{path}: not a metrics file ({e})") from None
+    if not isinstance(metrics, dict):
+        raise InputError(f"{path}: not a metrics file (a JSON {type(metrics).__name__}, not an object)")
     curves = run_dir / "curves.npz"
     if not curves.is_file():
         return metrics, {}
