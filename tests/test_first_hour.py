@@ -761,3 +761,17 @@ def test_subjects_with_white_space_are_evaluated_and_written_percent_encoded(fra
     probes = list(csv.DictReader((out / "probes.csv").open()))
     assert {p["subject"] for p in probes} == {"person 04200", "person 04201", "person 04202"}
     assert all(p["rank"] == "1" for p in probes)  # the same frames as the `run` fixture's: each found first
+
+
+def test_verify_against_a_one_person_fusion_gallery_says_why_every_claim_is_rejected(frames, tmp_path):
+    """The default fusion z-normalises each probe's scores over the gallery's people: with one person every claim
+    scores 0 and is rejected. The rejection now comes with the reason and what to do."""
+    store = tmp_path / "one.sqlite"
+    r = CliRunner().invoke(main, ["enroll", str(frames / "04200" / "front_1.png"), "--subject", "a", "--gallery",
+                                  str(store), "--cache", str(tmp_path / "cache")])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(main, ["verify", str(frames / "04200" / "front_2.png"), "--gallery", str(store),
+                                  "--claim", "a", "--cache", str(tmp_path / "cache")])
+    assert r.exit_code == 1 and r.output.startswith("reject: claim a, score 0.0000"), r.output
+    assert "hint: method 'fusion' normalises each probe's scores over the gallery's people, and this gallery holds " \
+           "one: every claim scores 0." in r.output
