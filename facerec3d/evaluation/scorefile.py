@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import csv
 from collections.abc import Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import NamedTuple
 
@@ -109,22 +110,15 @@ def _read_columns(path: str | Path, n: int) -> list[np.ndarray]:
     return [np.array(c, dtype=str) for c in cols[:-1]] + [np.array(cols[-1], dtype=float)]
 
 
-class _text:
-    """A score file opened as UTF-8 text; a byte that is not UTF-8 is one InputError naming the file and where."""
-
-    def __init__(self, path: str | Path, newline: str | None = None):
-        self.path, self.newline = path, newline
-
-    def __enter__(self):
-        self.f = open(self.path, encoding="utf-8", newline=self.newline)
-        return self.f
-
-    def __exit__(self, kind, error, trace):
-        self.f.close()
-        if isinstance(error, UnicodeDecodeError):
-            raise InputError(f"{self.path}: not UTF-8 text (a byte {error.object[error.start:error.start + 1]!r}): "
-                             "save it as UTF-8") from None
-        return False
+@contextmanager
+def _text(path: str | Path, newline: str | None = None):
+    """A score file opened as UTF-8 text; a byte that is not UTF-8 is one InputError naming the file."""
+    try:
+        with open(path, encoding="utf-8", newline=newline) as f:
+            yield f
+    except UnicodeDecodeError as e:
+        raise InputError(f"{path}: not UTF-8 text (a byte {e.object[e.start:e.start + 1]!r}): save it as UTF-8") \
+            from None
 
 
 def read_scores(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
