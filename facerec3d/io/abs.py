@@ -24,7 +24,7 @@ import numpy as np
 from numba import njit
 
 from facerec3d.errors import ScanFormatError
-from facerec3d.io.common import check_grid_size, grid_scan, open_binary, range_image
+from facerec3d.io.common import check_grid_size, open_binary, range_image
 from facerec3d.scan import FaceScan
 
 INVALID = -999999.0
@@ -102,8 +102,19 @@ def read_abs(path: str | Path) -> FaceScan:
             flags, xyz = _read_body(path, f, n, f"{rows}×{cols}")
         except (EOFError, zlib.error, _InflateError, gzip.BadGzipFile) as e:
             raise ScanFormatError(path, f"corrupt or truncated gzip data ({e})") from None
-    xyz = np.moveaxis(xyz.reshape(3, rows, cols), 0, -1)
-    return grid_scan(path, xyz, flags.reshape(rows, cols))
+    return _valid_pixels(path, xyz.reshape(3, n), flags, rows, cols)
+
+
+def _valid_pixels(path: str | Path, blocks: np.ndarray, flags: np.ndarray, rows: int, cols: int) -> FaceScan:
+    """The scan of the flagged pixels of the X, Y, Z blocks (3, rows·cols), in row-major order: what `grid_scan`
+    makes of the (rows, cols, 3) image, without that image (a third of an FRGC-size scan's reading time)."""
+    at = np.flatnonzero(flags)
+    if not len(at):
+        raise ScanFormatError(path, "no valid points")
+    points = blocks[:, at].T
+    if not np.isfinite(points).all():
+        raise ScanFormatError(path, "non-finite coordinates in valid pixels")
+    return FaceScan(points, grid=np.stack(np.divmod(at, cols), axis=1), grid_shape=(rows, cols))
 
 
 def _read_body(path: str | Path, f, n: int, size: str) -> tuple[np.ndarray, np.ndarray]:
