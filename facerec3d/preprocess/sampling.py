@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from numba import njit
 
 from facerec3d.errors import FailureToAcquire
 from facerec3d.scan import FaceScan
@@ -62,9 +63,7 @@ def depth_step(scan: FaceScan, min_zero_share: float = 0.3, pitch: float | None 
     `pitch`: the scan's resolution when already known."""
     if scan.grid is None or scan.n_points < 10:
         return 0.0
-    z = _z_image(scan)
-    d = np.concatenate([np.abs(np.diff(z, axis=0)).ravel(), np.abs(np.diff(z, axis=1)).ravel()])
-    d = d[np.isfinite(d)]
+    d = _differences(_z_image(scan), 1)
     if len(d) < 10:
         return 0.0
     pitch = scan.resolution() if pitch is None else pitch
@@ -79,12 +78,32 @@ def depth_noise(scan: FaceScan) -> float:
     """σ of depth noise (mm) from second differences along the grid's rows and columns (robust: MAD)."""
     if scan.grid is None or scan.n_points < 10:
         return 0.0
-    z = _z_image(scan)
-    second = np.concatenate([(z[:-2] - 2 * z[1:-1] + z[2:]).ravel(), (z[:, :-2] - 2 * z[:, 1:-1] + z[:, 2:]).ravel()])
-    second = second[np.isfinite(second)]
+    second = _differences(_z_image(scan), 2)
     if len(second) < 10:
         return 0.0
-    return float(1.4826 * np.median(np.abs(second - np.median(second))) / np.sqrt(6.0))
+    return float(1.4826 * np.median(np.abs(second - np.median(second)), overwrite_input=True) / np.sqrt(6.0))
+
+
+@njit(cache=True)
+def _differences(z, order):  # pragma: no cover - compiled
+    """The finite differences of depth image z along its columns and rows, where both (order 1: |z[i+1] − z[i]|) or
+    all three (order 2: z[i−1] − 2 z[i] + z[i+1]) pixels hold depth, in no particular order (their medians are
+    taken): the values NumPy's diff and slicing give, without their full-size images."""
+    rows, cols = z.shape
+    out = np.empty(2 * rows * cols)
+    n = 0
+    for axis in range(2):
+        dr, dc = (1, 0) if axis == 0 else (0, 1)
+        for r in range(rows - order * dr):
+            for c in range(cols - order * dc):
+                if order == 1:
+                    v = abs(z[r + dr, c + dc] - z[r, c])
+                else:
+                    v = z[r, c] - 2 * z[r + dr, c + dc] + z[r + 2 * dr, c + 2 * dc]
+                if np.isfinite(v):
+                    out[n] = v
+                    n += 1
+    return out[:n]
 
 
 def measure_sampling(scan: FaceScan) -> Sampling:
