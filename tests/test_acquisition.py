@@ -253,3 +253,19 @@ def test_icp_thresholds_follow_the_source_sampling_and_the_template_stays_small(
         probe = frontal_face(s, pose_deg=3.0, shift_mm=3.0, noise_mm=2.0, seed=10 + s)
         scores, _ = icp.scores(probe, templates)
         assert int(np.argmax(scores)) == s
+
+
+def test_the_compiled_differences_are_numpys():
+    """`sampling._differences` gives the finite first (absolute) and second differences that NumPy's diff and
+    slicing give along both axes of a depth image with holes: the same multiset, so the same medians."""
+    from facerec3d.preprocess.sampling import _differences
+
+    rng = np.random.default_rng(3)
+    z = np.cumsum(rng.normal(0, 0.3, (37, 53)), axis=1) + rng.integers(0, 4, (37, 53)) * 8.0
+    z[rng.random(z.shape) < 0.2] = np.nan
+    first = np.concatenate([np.abs(np.diff(z, axis=0)).ravel(), np.abs(np.diff(z, axis=1)).ravel()])
+    second = np.concatenate([(z[:-2] - 2 * z[1:-1] + z[2:]).ravel(), (z[:, :-2] - 2 * z[:, 1:-1] + z[:, 2:]).ravel()])
+    for order, ref in ((1, first), (2, second)):
+        got = _differences(z, order)
+        ref = ref[np.isfinite(ref)]
+        assert len(got) == len(ref) > 500 and np.array_equal(np.sort(got), np.sort(ref))
