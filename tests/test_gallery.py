@@ -30,6 +30,12 @@ def big_template(i: int) -> Template:
     return Template(f"s{i}", f"scan{i}", "arrays", arrays, {"i": i, "origin": [1.5, -2.0, 0.25]})
 
 
+class ArraysMatcher(ICPMatcher):
+    """What a store of `big_template`s is bound to: ICP's settings under the method name "arrays"."""
+
+    name = "arrays"
+
+
 def assert_same(a: Template, b: Template) -> None:
     assert (a.subject, a.scan_id, a.method, a.attrs) == (b.subject, b.scan_id, b.method, b.attrs)
     assert a.arrays.keys() == b.arrays.keys()
@@ -42,7 +48,7 @@ def test_round_trip_settings_and_removal(tmp_path):
     path = tmp_path / "g.sqlite"
     with pytest.raises(GalleryError, match="no such gallery"):
         GalleryStore(path)
-    matcher = ICPMatcher(ICPConfig(variant="point-to-plane", fine_points=800))
+    matcher = ArraysMatcher(ICPConfig(variant="point-to-plane", fine_points=800))
     with GalleryStore(path, create=True) as store:
         store.bind(PreprocessConfig(), matcher)
         for i in range(3):
@@ -55,7 +61,7 @@ def test_round_trip_settings_and_removal(tmp_path):
         for i, t in enumerate(loaded):
             assert_same(t, big_template(i))
             assert t.arrays["points"].flags.writeable
-        assert store.matcher().options() == matcher.options() and store.matcher().name == "icp"
+        assert store.stats()["method"] == "arrays" and store.stats()["options"] == json.loads(json.dumps(matcher.options()))
         assert store.failures() == [("/data/bad.abs", "no face found")]
         st = store.stats()
         assert (st["entries"], st["subjects"], st["failures_to_enrol"]) == (3, 3, 1)
@@ -63,7 +69,7 @@ def test_round_trip_settings_and_removal(tmp_path):
         store.bind(PreprocessConfig(), matcher)  # same settings: accepted
         with pytest.raises(GalleryError, match=r"preprocessed differently.*crop_radius_mm"):
             store.check_preprocess(PreprocessConfig(crop_radius_mm=70.0))
-        with pytest.raises(GalleryError, match="enrolled with method 'icp'"):
+        with pytest.raises(GalleryError, match="enrolled with method 'arrays'"):
             store.bind(PreprocessConfig(), ICPMatcher())
         assert store.remove("s1") == 1 and store.remove("scan2") == 1 and store.remove("nobody") == 0
         assert [e.subject for e in store.entries()] == ["s0"]
@@ -106,7 +112,7 @@ def test_a_scan_name_of_several_people_is_never_removed_as_all_of_them(tmp_path)
     names the way to remove one entry, by its id (`--entry`), which is also what a damaged entry's message says."""
     path = tmp_path / "g.sqlite"
     with GalleryStore(path, create=True) as store:
-        store.bind(PreprocessConfig(), ICPMatcher())
+        store.bind(PreprocessConfig(), ArraysMatcher())
         for i in range(3):
             t = big_template(i)
             store.add(Template(t.subject, "front_1", t.method, t.arrays, t.attrs), f"/data/s{i}/front_1.png")
@@ -143,17 +149,18 @@ def test_a_gallery_with_no_entries_takes_new_settings(tmp_path):
         store.bind(PreprocessConfig(), ICPMatcher())
         store.add_failure("/data/bad.abs", "no face found")
         store.set_threshold({"value": -2.5, "rule": "fmr=0.01"})  # (as entries since removed left it)
-    other = ICPMatcher(ICPConfig(variant="point-to-plane"))
+    other = ArraysMatcher(ICPConfig(variant="point-to-plane"))
     with GalleryStore(path) as stale, GalleryStore(path) as store:
         store.bind(PreprocessConfig(crop_radius_mm=70.0), other)
-        assert store.matcher().options() == other.options() and store.threshold() is None
+        assert store.stats()["method"] == "arrays" and store.threshold() is None
+        assert store.stats()["options"] == json.loads(json.dumps(other.options()))
         assert store.preprocess_config() == PreprocessConfig(crop_radius_mm=70.0)
         assert store.failures() == [("/data/bad.abs", "no face found")]
         with pytest.raises(GalleryError, match="settings were replaced .* by another enrolment"):
             stale.add(big_template(0), "/data/0.abs")
         store.add(big_template(0), "/data/0.abs")
         store.bind(PreprocessConfig(crop_radius_mm=70.0), other)  # the same settings: accepted
-        with pytest.raises(GalleryError, match="enrolled with method 'icp'"):
+        with pytest.raises(GalleryError, match="enrolled with method 'arrays'"):
             store.bind(PreprocessConfig(crop_radius_mm=70.0), ICPMatcher())
         assert store.remove("s0") == 1
         store.bind(PreprocessConfig(), ICPMatcher())  # empty again: new settings once more
@@ -171,6 +178,31 @@ while True:  # enrol until killed
     store.add(big_template(i), f"/data/{{i}}.abs")
     i += 1
 """
+
+
+def test_a_store_refuses_a_template_of_another_method_or_without_a_subject(tmp_path):
+    """The Python API let a curvature template into an ICP gallery (every identify then crashed on it) and templates
+    without a subject in (`remove()` with no argument then deleted them): both are refused, naming the source, and a
+    removal must name what it removes."""
+    path = tmp_path / "g.sqlite"
+    with GalleryStore(path, create=True) as store:
+        store.bind(PreprocessConfig(), ArraysMatcher())
+        store.add(big_template(0), "/data/0.abs")
+        t = big_template(1)
+        with pytest.raises(GalleryError, match=r"/data/1\.abs: a 'curvature' template, and .*g\.sqlite holds "
+                                               r"'arrays' ones"):
+            store.add(Template(t.subject, t.scan_id, "curvature", t.arrays, t.attrs), "/data/1.abs")
+        for subject in (None, ""):
+            with pytest.raises(GalleryError, match=r"/data/1\.abs: a template needs its subject to be enrolled"):
+                store.add(Template(subject, t.scan_id, t.method, t.arrays, t.attrs), "/data/1.abs")
+        with pytest.raises(GalleryError, match="a removal names a subject, a scan id or an entry id"):
+            store.remove()
+        assert [e.subject for e in store.entries()] == ["s0"]
+    unbound = tmp_path / "raw.sqlite"  # a store never bound: its first template's method is the one it holds
+    with GalleryStore(unbound, create=True) as store:
+        store.add(big_template(0), "/data/0.abs")
+        with pytest.raises(GalleryError, match="holds 'arrays' ones"):
+            store.add(Template("s1", "x", "icp", t.arrays, t.attrs), "/data/1.abs")
 
 
 def test_a_gallery_stored_before_a_setting_existed_accepts_todays_defaults(tmp_path):

@@ -652,8 +652,10 @@ def test_an_enrolment_racing_another_skips_what_the_other_enrolled(data, tmp_pat
         report = enroll_scans(store, records, matcher, cache=data["cache"])
         assert (report.enrolled, len(report.skipped), report.failures) == (1, 1, [])
         assert len(store.entries()) == 2
+        twin = matcher.enroll(cap_image())
+        twin.subject = records[0].subject
         with pytest.raises(AlreadyEnrolled, match="already enrolled"):
-            store.add(matcher.enroll(cap_image()), str(records[0].path.resolve()))
+            store.add(twin, str(records[0].path.resolve()))
 
 
 def test_two_enrolments_at_once_enrol_everything_once(data, tmp_path):

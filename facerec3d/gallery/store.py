@@ -522,11 +522,16 @@ class GalleryStore:
     def add(self, template: Template, source: str, content: str | None = None) -> int:
         """Store one template (one transaction) and clear the source's failure to enrol, if any; returns its
         id. `content`: a hash of the scan file's bytes. AlreadyEnrolled when the source, or the content, is."""
+        if not isinstance(template.subject, str) or not template.subject:
+            raise GalleryError(f"{source}: a template needs its subject to be enrolled, not {template.subject!r}")
         encoded = {name: encode_array(a) for name, a in template.arrays.items()}
         with self._transaction():
             if self._meta("binding") != self._binding:  # an empty store was given other settings meanwhile
                 raise GalleryError(f"{self.path}: the gallery's settings were replaced (now method "
                                    f"{self._meta('method')!r}) by another enrolment while it was empty; enrol again")
+            held = self._meta("method") or next(iter(self._db.execute("SELECT method FROM entries LIMIT 1")), [None])[0]
+            if held is not None and held != template.method:  # a store holds one method's templates
+                raise GalleryError(f"{source}: a {template.method!r} template, and {self.path} holds {held!r} ones")
             twin = self._db.execute("SELECT id, source FROM entries WHERE source = ? OR content = ?",
                                     (source, content)).fetchone()
             if twin is not None:
@@ -631,6 +636,8 @@ def removal(entries: Sequence[Entry], ident: str | None, entry: int | None) -> l
     has a `front_1`) is refused (ValueError, the reason), never taken as all of them."""
     if entry is not None:
         return [e for e in entries if e.id == entry]
+    if not ident:
+        raise ValueError("a removal names a subject, a scan id or an entry id")
     chosen = [e for e in entries if e.subject == ident] or [e for e in entries if e.scan_id == ident]
     if len(subjects := {e.subject for e in chosen}) > 1:
         raise ValueError(f"scan {ident!r} names {len(chosen)} entries of {len(subjects)} subjects; remove one by its "
