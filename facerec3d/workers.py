@@ -83,7 +83,13 @@ class Workers:
                 raise InputError("a Dask scheduler needs dask.distributed: pip install 'facerec3d[distributed]'") \
                     from None
             own = not isinstance(scheduler, Client)
-            client = Client(scheduler) if own else scheduler
+            try:
+                client = Client(scheduler) if own else scheduler
+            except (ValueError, TypeError) as e:  # distributed's parse of the address
+                raise InputError(f"scheduler {scheduler!r}: not a Dask scheduler's address ({e}); give one such as "
+                                 "tcp://host:8786") from None
+            except OSError as e:  # nothing answers there
+                raise InputError(f"scheduler {scheduler!r}: {e}") from None
             workers = sorted(client.scheduler_info()["workers"])
             if not workers:
                 if own:

@@ -200,3 +200,13 @@ def test_gallery_normalised_scores_do_not_depend_on_the_sharding(method, options
     for (s, _), e in zip(rows, expected):
         np.testing.assert_array_equal(s, e)
     assert [int(np.argmax(s)) for s, _ in rows] == [1, 3]
+
+
+def test_a_malformed_scheduler_address_is_one_clear_error():
+    """`--scheduler tcp://localhost` (no port) or `127.0.0.1:8799x` gave distributed's ValueError traceback."""
+    pytest.importorskip("distributed")
+    from facerec3d.errors import InputError
+
+    for address, why in (("tcp://localhost", "missing port number"), ("127.0.0.1:8799x", "invalid literal")):
+        with pytest.raises(InputError, match=rf"scheduler '{address}': not a Dask scheduler's address \(.*{why}"):
+            Engine.create(scheduler=address)
