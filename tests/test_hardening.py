@@ -277,6 +277,24 @@ def test_cli_on_a_damaged_gallery_is_one_line_never_a_crash(data, tmp_path):
         assert "is damaged: array 'voxel_index': checksum mismatch" in r.output and "Traceback" not in r.output
 
 
+def test_the_python_api_refuses_a_verification_without_a_claim_and_a_k_below_one(data, tmp_path):
+    """verify_scan(store, probe, None) accepted anyone (the best score over the whole gallery was "the claim's"), and
+    identify_scan(k=-1) dropped the last candidate: both are refused before any work."""
+    from facerec3d.errors import InputError
+    from facerec3d.gallery.service import identify_scan, verify_scan
+
+    store = tmp_path / "g.sqlite"
+    assert enroll(data["scans"][:2], data, store).exit_code == 0
+    with GalleryStore(store) as st:
+        for claim in (None, ""):
+            with pytest.raises(GalleryError, match=r"a verification claims a subject \(a non-empty text\)"):
+                verify_scan(st, data["scans"][2], claim, cache=data["cache"])
+        for k in (0, -1):
+            with pytest.raises(InputError, match="k must be a whole number of 1 or more"):
+                identify_scan(st, data["scans"][2], k=k, cache=data["cache"])
+        assert len(identify_scan(st, data["scans"][2], k=1, cache=data["cache"])) == 1
+
+
 def test_damaged_method_settings_of_a_store_are_one_line_naming_it(data, tmp_path):
     """A store whose `options` or `state` is not a JSON table, or whose `method` is unknown, gave a JSONDecodeError
     traceback (stats, verify, identify) or an error not naming the store."""

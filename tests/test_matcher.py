@@ -90,6 +90,11 @@ def test_identify_verify_and_default_scores():
     assert m.verify(probe, gallery[2], threshold=-1.5)
     assert not m.verify(probe, gallery[3], threshold=-1.5)
     assert m.fit([probe], ["x"]) is m
+    from facerec3d.errors import InputError
+
+    for k in (0, -1, 2.5, True):  # k = -1 returned all but the last candidate, 0 none
+        with pytest.raises(InputError, match="k must be a whole number of 1 or more"):
+            m.identify(probe, gallery, k=k)
 
 
 def test_identify_uses_tiebreak():

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from facerec3d.gallery.cascade import Cascade, CascadeConfig, CascadeScores
-from facerec3d.matching.base import GalleryScores, Matcher, Template, merge_shard_scores, rank, shard_scores
+from facerec3d.matching.base import GalleryScores, Matcher, Template, best_k, merge_shard_scores, shard_scores
 from facerec3d.preprocess.batch import Outcome, preprocess_files
 from facerec3d.preprocess.pipeline import PreprocessConfig
 from facerec3d.scan import FaceScan
@@ -269,4 +269,4 @@ class ShardedGallery:
         """The k best gallery entries for a probe face as (gallery index, score), best first."""
         probe = self.engine.prepare(self.matcher, [face], cascade)
         result = (self.scores(probe) if cascade is None else self.cascade(probe, cascade))[0]
-        return [(int(i), float(result.scores[i])) for i in rank(result.scores, result.tiebreak)[:k]]
+        return [(int(i), float(result.scores[i])) for i in best_k(result.scores, result.tiebreak, k)]

@@ -23,7 +23,7 @@ from facerec3d.gallery.cascade import CascadeConfig
 from facerec3d.gallery.engine import Engine
 from facerec3d.gallery.store import AlreadyEnrolled, Entry, GalleryError, GalleryStore
 from facerec3d.io import scan_stem
-from facerec3d.matching.base import Matcher, Template
+from facerec3d.matching.base import Matcher, Template, check_k
 from facerec3d.preprocess.batch import preprocess_file, printable
 from facerec3d.preprocess.pipeline import PreprocessConfig
 from facerec3d.scan import FaceScan
@@ -221,6 +221,7 @@ def identify_scan(store: GalleryStore, probe: str | Path, *, k: int = 5, cascade
     """The k best gallery entries for a probe scan, (entry, score) best first; the probe is read (a depth frame
     with `intrinsics` when given), preprocessed and matched on the `engine`'s workers (default: this process).
     A `matcher` given must be the gallery's (method and options)."""
+    check_k(k)  # before any work
     stored = store.matcher()
     if matcher is not None:
         store.check_matcher(matcher)
@@ -247,6 +248,8 @@ def verify_scan(store: GalleryStore, probe: str | Path, claim: str, *, threshold
     when it reaches the threshold (default: the gallery's calibrated one, `gallery_threshold`). Methods whose scores
     are normalised over the gallery (`matching.base.GalleryNormalised`: `cohort_scores`) score the probe against the whole gallery.
     A depth frame is read with `intrinsics` (a JSON file) when given."""
+    if not isinstance(claim, str) or not claim:  # entries(subject=None) would be every entry: anyone's claim
+        raise GalleryError(f"{store.path}: a verification claims a subject (a non-empty text), not {claim!r}")
     matcher = store.matcher()
     if threshold is None:
         threshold = gallery_threshold(store, matcher.name)

@@ -31,7 +31,7 @@ from typing import Any, Generic, NamedTuple, TypeVar
 import numpy as np
 
 from facerec3d.config import from_dict
-from facerec3d.errors import SettingsError
+from facerec3d.errors import InputError, SettingsError
 from facerec3d.scan import FaceScan
 
 #: Relative score difference under which two scores count as tied (then the tiebreak decides).
@@ -92,6 +92,19 @@ class GalleryScores(NamedTuple):
 
     scores: np.ndarray
     tiebreak: np.ndarray
+
+
+def check_k(k: int) -> int:
+    """The number of candidates an identification lists: a whole number of 1 or more, else InputError (a slice of
+    k = -1 would drop the last candidate, 0 give none)."""
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+        raise InputError(f"k must be a whole number of 1 or more, not {k!r}")
+    return int(k)
+
+
+def best_k(scores: np.ndarray, tiebreak: np.ndarray | None, k: int) -> np.ndarray:
+    """The indices of the k best scores, best first (`rank`; `check_k`)."""
+    return rank(scores, tiebreak)[:check_k(k)]
 
 
 def rank(scores: np.ndarray, tiebreak: np.ndarray | None = None, tolerance: float = TIE_TOLERANCE) -> np.ndarray:
@@ -216,7 +229,7 @@ class Matcher(ABC, Generic[P]):
     def identify(self, probe: FaceScan | P, gallery: Sequence[Template], k: int = 5) -> list[tuple[int, float]]:
         """The k best gallery entries as (index, score), best first; near-ties broken by the larger tiebreak."""
         s, tiebreak = self.scores(probe, gallery)
-        return [(int(i), float(s[i])) for i in rank(s, tiebreak)[:k]]
+        return [(int(i), float(s[i])) for i in best_k(s, tiebreak, k)]
 
     def verify(self, probe: FaceScan | P, template: Template, threshold: float) -> bool:
         """Accept the claimed identity when the score reaches the threshold."""
