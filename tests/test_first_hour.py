@@ -322,7 +322,7 @@ def test_the_service_takes_intrinsics_as_a_file_part_or_text(frames, tmp_path):
     from facerec3d.server.keys import KeyFile, add_key
     from facerec3d.server.live import LiveGallery
 
-    key = add_key(tmp_path / "keys.json", "gate", "enrol,query")
+    key = add_key(tmp_path / "keys.json", "gate", "enrol,query,admin")
     live = LiveGallery(tmp_path / "g.sqlite", jobs=1)
     service = Service(live, KeyFile(tmp_path / "keys.json"), ServiceSettings())
     camera = (frames / "intrinsics.json").read_bytes()
@@ -340,6 +340,18 @@ def test_the_service_takes_intrinsics_as_a_file_part_or_text(frames, tmp_path):
         r = client.post("/v1/identify", headers=headers,
                         files={"probe": ("front_2.png", probe), "intrinsics": ("intrinsics.json", b"{fx: 1")})
         assert r.status_code == 422 and "not JSON" in r.json()["error"]
+        for person in ("04200", "04201"):
+            r = client.post("/v1/enrol", headers=headers, data={"subject": person},
+                            files={"scan": ("front_1.png", (frames / person / "front_1.png").read_bytes()),
+                                   "intrinsics": ("intrinsics.json", camera)})
+            assert r.status_code == 201, r.text
+        people = ["04200", "04201", "04202"]
+        scans = [("scan", (f"{s}.png", (frames / s / "front_2.png").read_bytes())) for s in people]
+        r = client.post("/v1/calibrate", headers=headers, data={"subject": people},  # a file part here too
+                        files=scans + [("intrinsics", ("intrinsics.json", camera))])
+        assert r.status_code == 200, r.text
+        record = r.json()["threshold"]  # every scan read with the intrinsics of the file part
+        assert (record["scans"], record["failed_scans"], record["impostor_pairs"]) == (3, 0, 6)
     finally:
         service.close()
 

@@ -535,9 +535,15 @@ def _upload(file: UploadFile, fmt: str | None, intrinsics: str | UploadFile | No
     if suffix not in SUPPORTED_SUFFIXES:
         raise ApiError(415, f"{name}: unknown scan format {suffix[:20] or '(none)'!r}: name the file with one of "
                             f"{', '.join(SUPPORTED_SUFFIXES)} or give the form field 'format'")
-    if intrinsics is not None and not isinstance(intrinsics, str):  # a file part: read no more than a field holds
-        intrinsics = intrinsics.file.read(MAX_INTRINSICS_CHARS + 1).decode("utf-8", errors="replace")
+    intrinsics = _part_text(intrinsics)
     return Received(file, suffix, name, _intrinsics(intrinsics) if intrinsics else None)
+
+
+def _part_text(part: str | UploadFile | None) -> str | None:
+    """An intrinsics form part as text: a text field as it is, a file part read no further than a field holds."""
+    if part is None or isinstance(part, str):
+        return part
+    return part.file.read(MAX_INTRINSICS_CHARS + 1).decode("utf-8", errors="replace")
 
 
 def _work(job: Job, live: LiveGallery, fn, *args):
@@ -592,10 +598,10 @@ def _verify(job: Job, live: LiveGallery, received: Received, claim: str, thresho
             "method": live.matcher.name, "gallery_version": version, "preprocessed_upload": given, "timings": timings}
 
 
-def _cameras(intrinsics: list[str] | None, n: int) -> list[str | None]:
-    """Each of `n` calibration scans' intrinsics (JSON text or None): none given, one for all, or one per scan
-    ("null" for a scan without); ApiError 422 for another count."""
-    given = [None if text.strip() in ("", "null") else text for text in intrinsics or []]
+def _cameras(intrinsics: list[str | UploadFile] | None, n: int) -> list[str | None]:
+    """Each of `n` calibration scans' intrinsics (JSON text or None), from text fields or file parts: none given,
+    one for all, or one per scan ("null" for a scan without); ApiError 422 for another count."""
+    given = [None if text.strip() in ("", "null") else text for text in map(_part_text, intrinsics or [])]
     if len(given) > 1 and len(given) != n:
         raise ApiError(422, f"{len(given)} intrinsics for {n} scans: give one for all of them, or one per scan "
                             "('null' for a scan without)")
@@ -761,9 +767,10 @@ def create_app(service: Service):
                         scan: list[UploadFile] = File(..., description=f"The scans (at most {MAX_SCANS}), read as "
                                                       "for enrol: e.g. those the gallery was enrolled from"),
                         subject: list[str] = Form(..., description="Each scan's subject id, in the same order"),
-                        intrinsics: list[str] | None = Form(None, description="Depth frames: camera intrinsics "
-                                                            "JSON, one for all the scans or one per scan ('null' "
-                                                            "for a scan without)"),
+                        intrinsics: list[str | UploadFile] | None = Form(None, description="Depth frames: camera "
+                                                                          "intrinsics JSON, as text or files, one for "
+                                                                          "all the scans or one per scan ('null' for "
+                                                                          "a scan without)"),
                         fmr: float = Form(0.01, gt=0, le=1, description="False-match rate the threshold keeps"),
                         eer: bool = Form(False, description="The threshold at the equal error rate instead "
                                                             "(needs two scans of some subjects)"),
