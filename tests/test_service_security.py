@@ -221,6 +221,19 @@ def test_ids_may_not_end_in_a_line_break(app):
     assert all("\n" not in e.subject for e in app["live"].entries)
 
 
+def test_ids_may_not_be_dot_or_dot_dot(app):
+    """A subject '..' was enrolled (201) and then could not be fetched or removed by name: URL paths lose it. A file
+    named '..' + suffix no longer gives the scan id '..'."""
+    scan = probe_file(app["tmp"], 3, 1)
+    for fields in ({"subject": ".."}, {"subject": "."}, {"subject": "s9", "scan_id": ".."}):
+        r = app["client"].post("/v1/enrol", files={"scan": (scan.name, scan.read_bytes())}, data=fields)
+        assert_error(r, 422, "not . or ..")
+    r = app["client"].post("/v1/enrol", files={"scan": (".." + scan.suffix, scan.read_bytes())}, data={"subject": "s9"})
+    assert r.status_code == 201 and r.json()["scan_id"] == "upload", r.text
+    assert {e.subject for e in app["live"].entries}.isdisjoint({".", ".."})
+    assert app["client"].delete("/v1/subjects/s9").status_code == 200
+
+
 def test_malformed_intrinsics_are_4xx_with_one_line(app, capfd):
     """Item 6: 100,000-deep JSON, a 5,000-digit integer, a 4,000-digit one (too large for a float)."""
     scan = probe_file(app["tmp"], 3, 1)

@@ -472,10 +472,15 @@ class Service:
         return {"key": request.state.api_key.name, "client": request.client.host if request.client else "?"}
 
 
+def _is_label(value: str | None) -> bool:
+    """Whether `value` can be a subject or scan id (`_LABEL`; not "." or "..", which URL paths lose)."""
+    return value is not None and bool(_LABEL.fullmatch(value)) and value not in (".", "..")
+
+
 def _label(value: str | None, what: str) -> str:
-    if value is None or not _LABEL.fullmatch(value):
+    if not _is_label(value):
         raise ApiError(422, f"bad {what} {value!r}: 1-128 letters, digits or . _ - @ + : (no spaces, slashes or "
-                            "line breaks)"[:300])
+                            "line breaks; not . or ..)"[:300])
     return value
 
 
@@ -720,7 +725,7 @@ def create_app(service: Service):
         subject = _label(subject, "subject")
         upload = _upload(scan, format, intrinsics)
         scan_id = _label(scan_id, "scan_id") if scan_id is not None else \
-            (_LABEL.fullmatch(scan_stem(upload.label)) and scan_stem(upload.label)) or "upload"
+            (scan_stem(upload.label) if _is_label(scan_stem(upload.label)) else "upload")
         return JSONResponse(service.counted(await service.run(request, _enrol, live, upload, subject, scan_id,
                                                               service.who(request))), 201)
 
