@@ -38,7 +38,7 @@ from facerec3d.matching.registry import make_matcher
 from facerec3d.preprocess import PreprocessConfig
 from facerec3d.preprocess import batch
 from facerec3d.preprocess.batch import cache_key, code_stamp, preprocess_file, preprocess_files
-from tests.conftest import cap_image
+from tests.conftest import cap_face
 
 SMALL = ScannerConfig(rows=240, cols=320, focal_px=500.0)
 GiB_KB = 1024 * 1024  # ru_maxrss is in KiB on Linux
@@ -194,7 +194,7 @@ def small_store(path) -> GalleryStore:
     matcher = ICPMatcher()
     store.bind(PreprocessConfig(), matcher)
     for i in range(2):
-        t = matcher.enroll(cap_image(30, 40))
+        t = matcher.enroll(cap_face(30, 40))
         t.subject, t.scan_id = f"s{i}", f"scan{i}"
         store.add(t, f"/data/{i}.abs")
     return store
@@ -251,7 +251,7 @@ def test_forged_templates_are_checked_before_compiled_code(tmp_path, name, chang
 
 
 def test_icp_template_check_by_hand():
-    t = ICPMatcher().enroll(cap_image(30, 40))
+    t = ICPMatcher().enroll(cap_face(30, 40))
     check_template(t)
     for name, value in (("normals", t.arrays["normals"][:-1]), ("colors", np.zeros((5, 3), np.uint8)),
                         ("voxel_index", t.arrays["voxel_index"].astype(np.int64)),
@@ -670,7 +670,7 @@ def test_an_enrolment_racing_another_skips_what_the_other_enrolled(data, tmp_pat
         report = enroll_scans(store, records, matcher, cache=data["cache"])
         assert (report.enrolled, len(report.skipped), report.failures) == (1, 1, [])
         assert len(store.entries()) == 2
-        twin = matcher.enroll(cap_image())
+        twin = matcher.enroll(cap_face())
         twin.subject = records[0].subject
         with pytest.raises(AlreadyEnrolled, match="already enrolled"):
             store.add(twin, str(records[0].path.resolve()))

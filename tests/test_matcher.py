@@ -167,3 +167,32 @@ def test_a_file_that_is_not_a_model_is_refused_by_name(tmp_path):
         (tmp_path / name).write_bytes(content)
         with pytest.raises(FaceRec3DError, match=f"{name}: not a facerec3d model file, or a damaged one"):
             load_matcher(tmp_path / name)
+
+
+@pytest.mark.parametrize("name", ["icp", "region-icp", "curvature", "keypoints", "pca", "lda", "afm", "morph-id",
+                                  "embedding", "fusion"])
+def test_every_method_refuses_a_scan_that_preprocessing_did_not_make(name):
+    """A raw scan (a cap 1 m in front of the camera) given to a matcher scored −inf (icp, afm), 0 (morph-id,
+    keypoints) or raised a KeyError (region-icp, fusion); an empty face was enrolled as zeros (morph-id). Every
+    method now refuses both, saying to preprocess first."""
+    from facerec3d.errors import InputError
+    from facerec3d.matching.registry import make_matcher
+    from tests.conftest import cap_image
+
+    matcher = make_matcher(name)
+    raw = cap_image(30, 40)
+    for call in (matcher.enroll, matcher.prepare):
+        with pytest.raises(InputError, match=r"not a preprocessed face \(its points lie 9\d\d mm or more from the "
+                                             r"origin"):
+            call(raw)
+        with pytest.raises(InputError, match="an empty face, nothing to match"):
+            call(FaceScan(np.zeros((0, 3))))
+
+
+def test_region_icp_names_the_landmarks_a_face_lacks():
+    from facerec3d.errors import InputError
+    from facerec3d.matching.registry import make_matcher
+    from tests.conftest import cap_face
+
+    with pytest.raises(InputError, match="no nose_tip, nose_bridge, left_eye_inner, right_eye_inner landmark"):
+        make_matcher("region-icp").prepare(cap_face(30, 40))  # a probe: its regions are placed by them

@@ -13,6 +13,7 @@ from facerec3d.matching.depthmap import DepthMapConfig, depth_image
 from facerec3d.matching.registry import load_matcher, make_matcher
 from facerec3d.matching.subspace import fisher_lda, pca, scatter_matrices
 from facerec3d.preprocess.resample import depth_to_scan, grid_xy
+from tests.conftest import model_face
 
 SMALL = ScannerConfig(rows=320, cols=400, focal_px=1000.0)
 
@@ -118,9 +119,18 @@ def test_saved_model_round_trip(datasets, runs, method):
         assert {"mean", "projection", "scale"} <= set(data.files)
 
 
-def test_untrained_matcher_refuses():
-    with pytest.raises(RuntimeError, match="not trained"):
-        make_matcher("lda").features(None)
+def test_untrained_matcher_and_unusable_training_data_are_refused():
+    """Enrolling before fit, fitting on nothing or on scans and subjects of different lengths gave a RuntimeError or
+    NumPy's "need at least one array to stack": facerec3d's InputError now, with what to do."""
+    from facerec3d.errors import InputError
+
+    for name in ("pca", "lda"):
+        with pytest.raises(InputError, match=rf"the {name} matcher is not trained: call fit\(\) \(--train\)"):
+            make_matcher(name).enroll(model_face(1))
+        with pytest.raises(InputError, match=rf"{name}: 0 training scans, it learns from 2 or more"):
+            make_matcher(name).fit([], [])
+        with pytest.raises(InputError, match=rf"{name}: 2 training scans and 1 subjects: give one subject per scan"):
+            make_matcher(name).fit([model_face(1), model_face(2)], ["s1"])
 
 
 def test_options():

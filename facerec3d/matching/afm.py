@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from facerec3d.errors import InputError
-from facerec3d.matching.base import Matcher, Template
+from facerec3d.matching.base import Matcher, Template, check_face, check_training
 from facerec3d.matching.expression import ResidueConfig, ResidueModel
 from facerec3d.matching.morphable import GeometryImageConfig, RefitConfig, face_fit, geometry_image, refit, uv_basis
 from facerec3d.scan import FaceScan
@@ -156,6 +156,7 @@ class AFMMatcher(Matcher[Template]):
         return np.argsort(np.concatenate(labels), kind="stable")
 
     def enroll(self, scan: FaceScan) -> Template:
+        check_face(scan)
         c, m = self.coefficients(scan)
         return Template(scan.meta.subject, scan.meta.scan_id, self.name, {"coefficients": c, "valid": m})
 
@@ -165,6 +166,7 @@ class AFMMatcher(Matcher[Template]):
         neutral scan against its others; `expression.ResidueModel.learn`); the other handlings learn nothing."""
         if not self.needs_training:
             return self
+        check_training(scans, subjects, self.name)
         coeffs = [self.coefficients(s) for s in scans]
         energy = [float(np.linalg.norm(face_fit(s).expression)) for s in scans]
         labels = [s.meta.expression for s in scans]
@@ -205,7 +207,7 @@ class AFMMatcher(Matcher[Template]):
         averaged over the nearest `keep_regions` share of the regions they share; +inf where they share none."""
         if self.needs_training:
             if self.residue_ is None:
-                raise RuntimeError(f"the afm matcher with expression = {self.config.expression!r} is not trained: "
+                raise InputError(f"the afm matcher with expression = {self.config.expression!r} is not trained: "
                                    "call fit() or load a model")
             return self.residue_.errors(probe.arrays["coefficients"], probe.arrays["valid"],
                                         np.stack([t.arrays["coefficients"] for t in templates]),

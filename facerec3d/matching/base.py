@@ -32,7 +32,7 @@ import numpy as np
 
 from facerec3d.config import from_dict
 from facerec3d.errors import InputError, SettingsError
-from facerec3d.scan import FaceScan
+from facerec3d.scan import FaceScan, column_bounds
 
 #: Relative score difference under which two scores count as tied (then the tiebreak decides).
 TIE_TOLERANCE = 1e-9
@@ -92,6 +92,34 @@ class GalleryScores(NamedTuple):
 
     scores: np.ndarray
     tiebreak: np.ndarray
+
+
+#: A face as preprocessing leaves it has its nose tip at the origin: its bounding box holds the origin (§8.5.5). A raw
+#: scan lies where its camera saw it (a Kinect frame ~1 m away along −z); `check_face` allows this much slack.
+NEAR_ORIGIN_MM = 50.0
+
+
+def check_face(scan: FaceScan) -> None:
+    """Refuse (InputError) what no matcher can use: a scan with no points, or one that preprocessing has not put in
+    the frontal frame, nose tip at the origin (matchers gave −inf, 0 or a KeyError for raw scans)."""
+    who = scan.meta.path or scan.meta.scan_id or "the scan"
+    if not scan.n_points:
+        raise InputError(f"{who}: an empty face, nothing to match")
+    lo, hi = column_bounds(scan.points)
+    if (lo > NEAR_ORIGIN_MM).any() or (hi < -NEAR_ORIGIN_MM).any():
+        far = float(np.max(np.maximum(lo, -hi)))
+        raise InputError(f"{who}: not a preprocessed face (its points lie {far:.0f} mm or more from the origin, where "
+                         "preprocessing puts the nose tip): preprocess it first (facerec3d preprocess, or "
+                         "facerec3d.preprocess.Preprocessor)")
+
+
+def check_training(scans: Sequence[FaceScan], subjects: Sequence[str], name: str, least: int = 2) -> None:
+    """Refuse (InputError) training data a matcher cannot learn from: not one subject per scan, or fewer than
+    `least` scans."""
+    if len(scans) != len(subjects):
+        raise InputError(f"{name}: {len(scans)} training scans and {len(subjects)} subjects: give one subject per scan")
+    if len(scans) < least:
+        raise InputError(f"{name}: {len(scans)} training scans, it learns from {least} or more")
 
 
 def check_k(k: int) -> int:

@@ -24,7 +24,7 @@ import numpy as np
 from scipy import ndimage
 
 from facerec3d.geometry.curvature import depth_curvature
-from facerec3d.matching.base import Matcher, Template
+from facerec3d.matching.base import Matcher, Template, check_face
 from facerec3d.matching.depthmap import DepthMapConfig, depth_window, fill_nearest
 from facerec3d.preprocess.resample import grid_xy
 from facerec3d.scan import FaceScan
@@ -73,11 +73,13 @@ class CurvatureMatcher(Matcher[CurvatureMap]):
         return CurvatureMap(s.ravel().astype(np.float32), inside.ravel() & self._region)
 
     def enroll(self, scan: FaceScan) -> Template:
+        check_face(scan)
         m = self.curvature_map(scan)
         return Template(scan.meta.subject, scan.meta.scan_id, self.name,
                         {"shape_index": m.shape_index, "mask": m.mask})
 
     def prepare(self, scan: FaceScan) -> CurvatureMap:
+        check_face(scan)
         return self.curvature_map(scan)
 
     def scores(self, probe: FaceScan | CurvatureMap, templates: Sequence[Template]) -> tuple[np.ndarray, None]:

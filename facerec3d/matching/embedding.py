@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from facerec3d.errors import FaceRec3DError, InputError
-from facerec3d.matching.base import Matcher, Template
+from facerec3d.matching.base import Matcher, Template, check_face, check_training
 from facerec3d.matching.depthmap import fill_nearest
 from facerec3d.models import onnx_session
 from facerec3d.preprocess.resample import ResampleConfig, depth_map
@@ -254,6 +254,7 @@ class EmbeddingMatcher(Matcher[np.ndarray]):
     def fit(self, scans: Sequence[FaceScan], subjects: Sequence[str]) -> EmbeddingMatcher:
         """adapt = "wccn": learn the camera's within-person spread from its scans of other people (`wccn`)."""
         if self.needs_training:
+            check_training(scans, subjects, self.name)
             self.wccn_ = wccn(self.network_embed(scans), subjects, self.config.wccn_ridge)
         return self
 
@@ -290,10 +291,12 @@ class EmbeddingMatcher(Matcher[np.ndarray]):
         return e
 
     def enroll(self, scan: FaceScan) -> Template:
+        check_face(scan)
         return Template(scan.meta.subject, scan.meta.scan_id, self.name, {"embedding": self.embed([scan])[0]},
                         {"model": self.model.card.get("name", self.model.path.name)})
 
     def prepare(self, scan: FaceScan) -> np.ndarray:
+        check_face(scan)
         return self.embed([scan])[0]
 
     def _gallery(self, templates: Sequence[Template]) -> np.ndarray:

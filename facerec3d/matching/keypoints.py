@@ -34,7 +34,7 @@ from scipy.ndimage import maximum_filter, uniform_filter
 from scipy.spatial.distance import cdist
 
 from facerec3d.geometry.transforms import rigid_from_covariances
-from facerec3d.matching.base import Matcher, Template
+from facerec3d.matching.base import Matcher, Template, check_face
 from facerec3d.scan import FaceScan
 
 
@@ -158,6 +158,7 @@ class KeypointMatcher(Matcher[Template]):
         self.config = config
 
     def enroll(self, scan: FaceScan) -> Template:
+        check_face(scan)
         points, normals = detect_keypoints(scan, self.config)
         arrays = {"points": points.astype(np.float32), "descriptors": describe(scan, points, normals, self.config)}
         return Template(scan.meta.subject, scan.meta.scan_id, self.name, arrays, {})

@@ -24,7 +24,7 @@ from functools import lru_cache
 import numpy as np
 
 from facerec3d.facemodel import load_model
-from facerec3d.matching.base import Matcher, Template, vector_similarity
+from facerec3d.matching.base import Matcher, Template, check_face, vector_similarity
 from facerec3d.preprocess.pipeline import MODEL_FIT_KEY
 from facerec3d.preprocess.pose import ModelFit, ModelFitConfig, fit_face_model, model_nose_tip
 from facerec3d.preprocess.resample import front_triangles
@@ -287,9 +287,11 @@ class MorphIDMatcher(Matcher[np.ndarray]):
         return np.pad(a, (0, self.config.modes - len(a)))
 
     def enroll(self, scan: FaceScan) -> Template:
+        check_face(scan)
         return Template(scan.meta.subject, scan.meta.scan_id, self.name, {"identity": self.features(scan)})
 
     def prepare(self, scan: FaceScan) -> np.ndarray:
+        check_face(scan)
         return self.features(scan)
 
     def _similarity(self, p: np.ndarray, G: np.ndarray) -> np.ndarray:

@@ -38,7 +38,8 @@ from typing import NamedTuple
 import numpy as np
 
 from facerec3d.geometry.normals import estimate_normals
-from facerec3d.matching.base import GalleryNormalised, Matcher, Template
+from facerec3d.errors import InputError
+from facerec3d.matching.base import GalleryNormalised, Matcher, Template, check_face
 from facerec3d.matching.expression import expression_mobility
 from facerec3d.matching.icp import GalleryIndex, ICPConfig, ICPMatcher, ProbeData
 from facerec3d.matching.normalisation import check_fusion, fuse
@@ -90,6 +91,9 @@ class RegionICPConfig:
 def region_masks(face: FaceScan, config: RegionICPConfig = RegionICPConfig()) -> dict[str, np.ndarray]:
     """Each region's points of a preprocessed face, as boolean masks (N,), by region name."""
     p, lm = face.points, face.landmarks
+    if missing := [k for k in ("nose_tip", "nose_bridge", "left_eye_inner", "right_eye_inner") if k not in lm]:
+        raise InputError(f"{face.meta.path or face.meta.scan_id or 'the face'}: no {', '.join(missing)} landmark: "
+                         "region ICP places its regions by the landmarks preprocessing finds")
     tip, bridge = lm["nose_tip"], lm["nose_bridge"]
     eye_l, eye_r = lm["left_eye_inner"], lm["right_eye_inner"]
     d = float(np.linalg.norm(eye_l[:2] - eye_r[:2]))
@@ -136,10 +140,12 @@ class RegionICPMatcher(GalleryNormalised, Matcher[RegionProbe]):
         self._icp = ICPMatcher(config.icp)
 
     def enroll(self, scan: FaceScan) -> Template:
+        check_face(scan)
         return GalleryIndex.from_scan(scan, self.config.icp).to_template(scan.meta.subject, scan.meta.scan_id,
                                                                           self.name)
 
     def prepare(self, scan: FaceScan) -> RegionProbe:
+        check_face(scan)
         cfg = self.config
         normals = scan.normals
         if normals is None and cfg.icp.max_normal_angle is not None:

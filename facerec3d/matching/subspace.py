@@ -33,7 +33,7 @@ import numpy as np
 import scipy.linalg
 
 from facerec3d.errors import InputError
-from facerec3d.matching.base import Matcher, Template, vector_similarity
+from facerec3d.matching.base import Matcher, Template, check_face, check_training, vector_similarity
 from facerec3d.matching.depthmap import DepthMapConfig, depth_window, fill_nearest
 from facerec3d.scan import FaceScan
 
@@ -163,7 +163,7 @@ class _SubspaceMatcher(Matcher[np.ndarray]):
     def features(self, scan: FaceScan) -> np.ndarray:
         """(k,) the face's coordinates in the learnt subspace."""
         if self.projection_ is None:
-            raise RuntimeError(f"the {self.name} matcher is not trained: call fit() or load a model")
+            raise InputError(f"the {self.name} matcher is not trained: call fit() (--train) or load a model (--model)")
         return (self.vector(scan) - self.mean_) @ self.projection_
 
     def state(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -177,9 +177,11 @@ class _SubspaceMatcher(Matcher[np.ndarray]):
                                                       for k in ("mean", "projection", "scale"))
 
     def enroll(self, scan: FaceScan) -> Template:
+        check_face(scan)
         return Template(scan.meta.subject, scan.meta.scan_id, self.name, {"features": self.features(scan)})
 
     def prepare(self, scan: FaceScan) -> np.ndarray:
+        check_face(scan)
         return self.features(scan)
 
     def _similarity(self, p: np.ndarray, G: np.ndarray) -> np.ndarray:
@@ -204,6 +206,7 @@ class PCAMatcher(_SubspaceMatcher):
 
     def fit(self, scans: Sequence[FaceScan], subjects: Sequence[str]) -> PCAMatcher:
         """Learn the mean and principal directions from preprocessed training faces (§8.7.2)."""
+        check_training(scans, subjects, self.name)
         X = self._training_matrix(scans)
         mean, components, _ = pca(X, self.config.n_components, self.config.variance)
         self._learnt(X, mean, components)
@@ -218,6 +221,7 @@ class LDAMatcher(_SubspaceMatcher):
 
     def fit(self, scans: Sequence[FaceScan], subjects: Sequence[str]) -> LDAMatcher:
         """Learn PCA (§8.8.3) then the Fisher directions (§8.8.2) from training faces of ≥ 2 subjects."""
+        check_training(scans, subjects, self.name)
         n_classes = len(set(subjects))
         if n_classes < 2 or len(scans) <= n_classes:
             raise InputError(f"LDA needs at least 2 subjects and more faces than subjects "

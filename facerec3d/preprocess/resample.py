@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from facerec3d.errors import FailureToAcquire
+from facerec3d.errors import FailureToAcquire, InputError
 from facerec3d.io.common import MAX_POINTS
 from facerec3d.scan import FaceScan, column_bounds
 
@@ -131,7 +131,7 @@ def resample(scan: FaceScan, config: ResampleConfig = ResampleConfig()) -> FaceS
 def depth_map(scan: FaceScan, config: ResampleConfig = ResampleConfig()) -> tuple[np.ndarray, np.ndarray]:
     """(depth (size, size) with NaN where invalid, valid mask) of a resampled scan: the z of its range image."""
     if scan.grid is None or scan.grid_shape != (config.size, config.size):
-        raise ValueError(f"not a preprocessed face: grid {scan.grid_shape}, expected the {config.size}×{config.size} "
+        raise InputError(f"not a preprocessed face: grid {scan.grid_shape}, expected the {config.size}×{config.size} "
                          "resampling grid (§8.5.6)")
     xyz, valid = scan.to_range_image()
     return xyz[..., 2], valid

@@ -33,7 +33,7 @@ from numba import njit
 
 from facerec3d.geometry.normals import estimate_normals
 from facerec3d.geometry.transforms import rigid_from_covariance
-from facerec3d.matching.base import Matcher, Template
+from facerec3d.matching.base import Matcher, Template, check_face
 from facerec3d.matching.icp.config import ICPConfig
 from facerec3d.matching.icp.index import GalleryIndex, closest_point, nearest_within
 from facerec3d.scan import MIRRORED, FaceScan
@@ -170,10 +170,12 @@ class ICPMatcher(Matcher[ProbeData]):
         self._params = _params(config)
 
     def enroll(self, scan: FaceScan) -> Template:
+        check_face(scan)
         return GalleryIndex.from_scan(scan, self.config).to_template(scan.meta.subject, scan.meta.scan_id)
 
     def prepare(self, scan: FaceScan) -> ProbeData:
         """The probe's random subset with normals (of what was seen, unless `probe_mirrored`)."""
+        check_face(scan)
         if not self.config.probe_mirrored and scan.provenance is not None:
             scan = scan.subset(scan.provenance != MIRRORED)
         return ProbeData.build(scan.points, scan.normals, scan.colors, self.config, grid=scan.grid,
