@@ -8,6 +8,7 @@ raises `SettingsError` naming the file, the dotted field (`resample.resolution_m
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import tomllib
@@ -173,6 +174,27 @@ def _beside(path: str, source) -> str:
         return path
     beside = Path(source).resolve().parent / path
     return str(beside) if beside.is_file() else path
+
+
+def check_ranges(config, prefix: str = "") -> None:
+    """The range checks `from_dict` makes of a settings file (`RANGES`, by field name; finite numbers), made of a
+    config built in Python (`PreprocessConfig(crop_radius_mm=-5)`): SettingsError naming the dotted field."""
+    hints = _hints(type(config))
+    for f in dataclasses.fields(config):
+        value, name = getattr(config, f.name), prefix + f.name
+        if dataclasses.is_dataclass(value):
+            check_ranges(value, name + ".")
+        elif isinstance(value, (int, float)) and not isinstance(value, bool) and hints[f.name] in (int, float):
+            _in_range(hints[f.name], value, None, name)
+        elif isinstance(value, tuple) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+            for v in value:
+                _in_range(float, v, None, name)
+
+
+@functools.lru_cache(maxsize=None)
+def _hints(cls) -> dict:
+    """A config class's type hints (resolved once: they are the slow part of a check)."""
+    return typing.get_type_hints(cls)
 
 
 def _in_range(hint: type, value: int | float, source, name: str) -> int | float:

@@ -460,6 +460,27 @@ def test_preprocessing_settings_are_checked_field_by_field(tmp_path, text, where
     assert str(e.value).startswith(f"{path}: {where}") and "\n" not in str(e.value)
 
 
+def test_settings_built_in_python_are_range_checked_as_files_are():
+    """PreprocessConfig(crop_radius_mm=-5) made faces of no points (a file's value was refused); a dict or a path
+    given to Preprocessor failed deep inside with an AttributeError."""
+    from facerec3d.errors import InputError
+    from facerec3d.preprocess import Preprocessor
+    from facerec3d.preprocess.detect import DetectConfig
+
+    for build, said in ((lambda: PreprocessConfig(crop_radius_mm=-5.0), "crop_radius_mm: must be > 0, not -5.0"),
+                        (lambda: PreprocessConfig(crop_radius_mm=float("nan")), "crop_radius_mm: must be a finite"),
+                        (lambda: PreprocessConfig(detect=DetectConfig(sample_mm=0.0)), "detect.sample_mm: must be > 0")):
+        with pytest.raises(SettingsError) as e:
+            build()
+        assert str(e.value).startswith(said)
+    assert PreprocessConfig(crop_radius_mm=80.0).crop_radius_mm == 80.0
+    with pytest.raises(InputError, match="Preprocessor takes a PreprocessConfig .* not dict"):
+        Preprocessor({"crop_radius_mm": 50})
+    with pytest.raises(InputError, match=r"Preprocessor takes a FaceScan \(facerec3d.io.load_scan reads a file\), "
+                                         r"not str"):
+        Preprocessor()("scan.png")
+
+
 def test_a_json_settings_file_of_absurd_numbers_or_depth_is_one_line(tmp_path):
     from facerec3d.config import read_settings
 

@@ -46,7 +46,8 @@ from typing import Any
 
 import numpy as np
 
-from facerec3d.config import from_dict, read_settings
+from facerec3d.config import check_ranges, from_dict, read_settings
+from facerec3d.errors import InputError
 from facerec3d.preprocess.denoise import (DenoiseConfig, DequantiseConfig, SmoothConfig, denoise, dequantise,
                                          smooth_range_image)
 from facerec3d.preprocess.detect import DetectConfig, check_points, crop_sphere, detect_face, proposer
@@ -86,6 +87,7 @@ class PreprocessConfig:
     symmetry: SymmetryConfig = field(default_factory=SymmetryConfig)
 
     def __post_init__(self) -> None:
+        check_ranges(self)  # as a settings file's values are (a config built in Python skips from_dict)
         if not self.max_noise_pitches >= 0:
             raise ValueError(f"max_noise_pitches must be >= 0 (0: off), not {self.max_noise_pitches}")
         if self.crop_radius_mm > self.resample.half_width_mm:
@@ -136,6 +138,9 @@ class Preprocessor:
     """Raw scan -> cropped, cleaned, frontal face on a uniform grid (chapter §8.5)."""
 
     def __init__(self, config: PreprocessConfig = PreprocessConfig()):
+        if not isinstance(config, PreprocessConfig):
+            raise InputError(f"Preprocessor takes a PreprocessConfig (PreprocessConfig.from_dict for a table of "
+                             f"settings, PreprocessConfig.load for a file), not {type(config).__name__}")
         self.config = config
         self.timings: dict[str, float] = {}
 
@@ -153,6 +158,9 @@ class Preprocessor:
         return scan, measured, sampling, view
 
     def __call__(self, scan: FaceScan) -> FaceScan:
+        if not isinstance(scan, FaceScan):
+            raise InputError(f"Preprocessor takes a FaceScan (facerec3d.io.load_scan reads a file), not "
+                             f"{type(scan).__name__}")
         cfg = self.config
         scan, measured, sampling, view = self.detector_view(scan)
         found = self._timed("detect", detect_face, scan, cfg.detect)
