@@ -88,3 +88,13 @@ def test_the_check_finds_a_wrong_option():
         _check(["identify", "p.png", "--gallery-file", "g.sqlite"], "example")
     with pytest.raises(AssertionError, match="no such command"):
         _check(["enrol", "p.png"], "example")
+
+
+def test_the_built_in_thresholds_the_docs_give_are_the_codes():
+    """docs/depth-camera.md said 3.0 and −1 mm² long after the defaults had become 4.0 and −1.8."""
+    from facerec3d.gallery.service import DEFAULT_THRESHOLDS
+
+    page = " ".join((ROOT / "docs" / "depth-camera.md").read_text(encoding="utf-8").split())
+    assert f"{DEFAULT_THRESHOLDS['fusion']:g}.0 for the fusion" in page or \
+        f"{DEFAULT_THRESHOLDS['fusion']:g} for the fusion" in page
+    assert f"−{abs(DEFAULT_THRESHOLDS['icp']):g} mm² for ICP" in page
