@@ -810,10 +810,10 @@ def verify(probe, gallery, claim, threshold, config_file, cache, intrinsics, ser
         accepted, score, threshold = verify_scan(store, probe, claim, threshold=threshold, config=config,
                                                  cache=_cache_folder(cache), intrinsics=intrinsics)
         hint = None if given or store.threshold() is not None else _threshold_hint(store, claim, threshold)
-        if store.matcher().cohort_scores and store.stats()["subjects"] < 2:
-            hint = (f"hint: method {store.stats()['method']!r} normalises each probe's scores over the gallery's "
-                    "people, and this gallery holds one: every claim scores 0. Enrol more people, or enrol this one "
-                    "with --method icp")
+        if store.stats()["subjects"] < 2 and (matcher := store.matcher()).cohort_scores:
+            hint = (f"hint: method {matcher.name!r} normalises each probe's scores over the gallery's people, and "
+                    "this gallery holds one: every claim scores 0. Enrol more people, or enrol this one with "
+                    "--method icp")
     click.echo(f"{'accept' if accepted else 'reject'}: claim {claim}, score {score:.4f} (threshold {threshold:g})")
     if hint:
         click.echo(hint, err=True)
