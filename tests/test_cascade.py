@@ -43,6 +43,34 @@ def test_screen_distance_ignores_a_shift_and_the_worst_cells():
     assert full[1] == pytest.approx(expected)  # keep 1: every common cell counts
 
 
+def _numpy_screen(probe, gallery, keep):
+    """The screen distance as NumPy says it (nanmedian, sort, cumsum): the compiled one must give it to the bit."""
+    d = gallery - probe
+    common = ~np.isnan(d)
+    w = common.sum(axis=1)
+    with np.errstate(invalid="ignore"):
+        shift = np.nanmedian(np.where(w[:, None] > 0, d, 0.0), axis=1, keepdims=True)
+    r = np.sort(np.where(common, (d - shift) ** 2, np.inf), axis=1)
+    k = np.maximum((w * keep).astype(np.int64), 1)
+    total = np.cumsum(np.where(np.isfinite(r), r, 0.0), axis=1)[np.arange(len(r)), k - 1]
+    return np.where(w >= 8, total / k, np.inf)
+
+
+@pytest.mark.parametrize("keep", [0.8, 1.0, 0.05])
+def test_screen_distance_is_numpys_to_the_bit(keep):
+    rng = np.random.default_rng(1)
+    probe = rng.normal(0.0, 5.0, 244)
+    probe[rng.random(244) < 0.05] = np.nan
+    gallery = probe + rng.normal(0.0, 2.0, (300, 244))
+    for i, share in enumerate(np.linspace(0.0, 1.0, 300)):  # from no common cell to all of them
+        gallery[i, rng.random(244) < share] = np.nan
+    gallery[5, :] = probe  # odd and even counts, exact zeros and ties
+    gallery[6, ::2] = np.round(gallery[6, ::2])
+    ours, numpys = screen_distances(probe, gallery, keep), _numpy_screen(probe, gallery, keep)
+    assert np.isinf(ours).sum() > 10 and np.isfinite(ours).sum() > 200
+    assert np.array_equal(ours, numpys)
+
+
 def test_settings_are_checked():
     with pytest.raises(ValueError, match="shortlist"):
         CascadeConfig(shortlist=0)
