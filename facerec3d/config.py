@@ -44,6 +44,7 @@ RANGES: dict[str, tuple[float, float, bool]] = {
     **dict.fromkeys(("min_coverage", "rim_coverage", "min_disc_coverage", "min_coarse_inliers", "min_inliers", "min_seen",
                      "min_overlap", "variance", "pca_share"), FRACTION),
     "start_yaws": ANY,  # degrees, either way
+    "min_y_mm": ANY,  # a height from the nose tip (the cascade's screen: -15 mm, below it)
 }
 
 #: Fields that name a file (a model): a relative path in a settings file is taken from that file's folder, as a
@@ -184,11 +185,19 @@ def check_ranges(config, prefix: str = "") -> None:
         value, name = getattr(config, f.name), prefix + f.name
         if dataclasses.is_dataclass(value):
             check_ranges(value, name + ".")
-        elif isinstance(value, (int, float)) and not isinstance(value, bool) and hints[f.name] in (int, float):
-            _in_range(hints[f.name], value, None, name)
+        elif isinstance(value, (int, float)) and not isinstance(value, bool) and (hint := _number(hints[f.name])):
+            _in_range(hint, value, None, name)
         elif isinstance(value, tuple) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
             for v in value:
                 _in_range(float, v, None, name)
+
+
+def _number(hint) -> type | None:
+    """int or float for a field of that type, or of that type or None (`max_normal_angle: float | None`); else None."""
+    if hint in (int, float):
+        return hint
+    options = set(typing.get_args(hint)) - {type(None)}
+    return options.pop() if len(options) == 1 and options <= {int, float} else None
 
 
 @functools.lru_cache(maxsize=None)

@@ -196,3 +196,74 @@ def test_region_icp_names_the_landmarks_a_face_lacks():
 
     with pytest.raises(InputError, match="no nose_tip, nose_bridge, left_eye_inner, right_eye_inner landmark"):
         make_matcher("region-icp").prepare(cap_face(30, 40))  # a probe: its regions are placed by them
+
+
+def _numbers(config, prefix: str = ""):
+    """Dotted names of a config's numeric settings (nested ones too) that must not be negative."""
+    import dataclasses
+
+    from facerec3d.config import RANGES
+
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value):
+            yield from _numbers(value, f"{prefix}{f.name}.")
+        elif type(value) in (int, float) and RANGES.get(f.name, (0.0,))[0] == 0.0:
+            yield prefix + f.name
+
+
+def _replaced(config, dotted: str, value):
+    import dataclasses
+
+    head, _, rest = dotted.partition(".")
+    return dataclasses.replace(config, **{head: _replaced(getattr(config, head), rest, value) if rest else value})
+
+
+@pytest.mark.parametrize("name", ["icp", "region-icp", "curvature", "keypoints", "pca", "lda", "afm", "morph-id",
+                                  "embedding", "fusion"])
+def test_every_method_checks_settings_built_in_python_as_a_file_is(name):
+    """`ICPMatcher(ICPConfig(max_iterations=-3))` was taken, and failed later or never (a settings file with the same
+    value was refused): now each method's config, nested tables included, is range-checked when the matcher gets it,
+    naming the field, and a dict in its place is refused in one line. (Values a config's own check refuses as it is
+    built never get that far.)"""
+    from facerec3d.errors import InputError, SettingsError
+    from facerec3d.matching.registry import matcher_class
+
+    cls = matcher_class(name)
+    config = cls.config_class()
+    checked = []
+    for dotted in _numbers(config):
+        for value, why in ((-1, r"must be (> 0|>= 0|in \[0, 1\]), not -1"), (float("nan"), "must be a finite number, not nan")):
+            try:
+                bad = _replaced(config, dotted, value)
+            except ValueError as e:  # the config's own check, naming the field
+                assert dotted.rsplit(".", 1)[-1] in str(e), f"{name}: {dotted} = {value}: {e}"
+                continue
+            with pytest.raises(SettingsError, match=f"^{dotted}: {why}$"):
+                cls(bad)
+            checked.append(dotted)
+    with pytest.raises(InputError, match=f"method {name!r} takes {cls.config_class.__name__} settings, not a dict"):
+        cls({"seed": 1})
+    assert cls(config).config == config  # the defaults pass
+
+
+def test_a_config_without_range_checks_of_its_own_is_checked_by_the_matcher():
+    from facerec3d.errors import SettingsError
+    from facerec3d.matching.icp import ICPConfig, ICPMatcher
+
+    config = ICPConfig(max_iterations=-3, max_normal_angle=float("inf"))  # its own checks let both through
+    with pytest.raises(SettingsError, match="^max_iterations: must be > 0, not -3$"):
+        ICPMatcher(config)
+    with pytest.raises(SettingsError, match="^max_normal_angle: must be a finite number, not inf$"):
+        ICPMatcher(ICPConfig(max_normal_angle=float("inf")))  # a `float | None` setting
+
+
+def test_cascade_settings_built_in_python_are_checked():
+    from facerec3d.errors import SettingsError
+    from facerec3d.gallery.cascade import CascadeConfig
+
+    with pytest.raises(SettingsError, match="^cell_mm: must be a finite number, not nan$"):
+        CascadeConfig(cell_mm=float("nan"))
+    with pytest.raises(SettingsError, match="^radius_mm: must be > 0, not -64$"):
+        CascadeConfig(radius_mm=-64)
+    assert CascadeConfig(min_y_mm=-30.0).min_y_mm == -30.0  # a height below the nose tip, as the default's -15

@@ -37,6 +37,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import njit
 
+from facerec3d.config import check_ranges
 from facerec3d.errors import InputError
 from facerec3d.matching.base import GalleryScores, Matcher, Template, rank
 from facerec3d.matching.icp import ICPMatcher
@@ -61,6 +62,7 @@ class CascadeConfig:
     screen_model: str = ""  # the embedding screen's ONNX model; "": the shipped one
 
     def __post_init__(self) -> None:
+        check_ranges(self)  # as a settings file's values are
         if self.shortlist < 1 or not 0 < self.keep <= 1:
             raise InputError("cascade shortlist must be >= 1 and keep in (0, 1]")
         if self.screen not in SCREENS:

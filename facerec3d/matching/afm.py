@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from facerec3d.config import check_ranges
 from facerec3d.errors import InputError
 from facerec3d.matching.base import Matcher, Template, check_face, check_training
 from facerec3d.matching.expression import ResidueConfig, ResidueModel
@@ -88,6 +89,7 @@ class AFMConfig:
     #   tuning half 33.8 against 26.5 % (docs/model-methods.md)
 
     def __post_init__(self) -> None:
+        check_ranges(self)  # NaN or a negative named before the checks below compute with it
         if self.expression not in EXPRESSION_HANDLING:
             raise ValueError(f"unknown expression handling {self.expression!r}: use one of {EXPRESSION_HANDLING}")
         if not 1 <= self.levels or 2**self.levels > self.image.size or not 0 <= self.drop_finest < self.levels:

@@ -30,7 +30,7 @@ from typing import Any, Generic, NamedTuple, TypeVar
 
 import numpy as np
 
-from facerec3d.config import from_dict
+from facerec3d.config import check_ranges, from_dict
 from facerec3d.errors import InputError, SettingsError
 from facerec3d.scan import FaceScan, column_bounds
 
@@ -181,6 +181,22 @@ class Matcher(ABC, Generic[P]):
     #: today's default, so old templates keep meeting probes prepared and scored their way (`from_stored`). A field
     #: of a nested table is given as a nested table ({"icp": {"plane_cap_mm": 0.0}}).
     added_options: dict[str, Any] = {}
+
+    @property
+    def config(self) -> Any:
+        """The matcher's settings, an instance of `config_class`."""
+        return self._config
+
+    @config.setter
+    def config(self, value: Any) -> None:
+        """Settings are checked as they are set, those built in Python (`ICPMatcher(ICPConfig(max_iterations=-3))`)
+        as a settings file's are (`config.check_ranges`): a SettingsError naming the field, not a failure later."""
+        if self.config_class is not None and not isinstance(value, self.config_class):
+            raise InputError(f"method {self.name!r} takes {self.config_class.__name__} settings, "
+                             f"not a {type(value).__name__}")
+        if is_dataclass(value):
+            check_ranges(value)
+        self._config = value
 
     @classmethod
     def from_stored(cls, options: Mapping[str, Any] | None) -> "Matcher":

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from facerec3d.config import check_ranges
 from facerec3d.preprocess.resample import ResampleConfig, depth_map
 from facerec3d.scan import FaceScan
 
@@ -35,6 +36,7 @@ class DepthMapConfig:
     grid: ResampleConfig = field(default_factory=ResampleConfig)  # the preprocessing's resampling grid (§8.5.6)
 
     def __post_init__(self) -> None:
+        check_ranges(self)  # NaN or a negative named before the checks below compute with it
         if self.fill not in FILLS:
             raise ValueError(f"unknown fill {self.fill!r}: use one of {FILLS}")
         stride = self.step_mm / self.grid.resolution_mm

@@ -23,6 +23,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from facerec3d.config import check_ranges
 from facerec3d.facemodel import load_model
 from facerec3d.matching.base import Matcher, Template, check_face, vector_similarity
 from facerec3d.preprocess.pipeline import MODEL_FIT_KEY
@@ -131,6 +132,7 @@ class GeometryImageConfig:
     #   model's span, a hand or glasses 10 mm and more (datasets.synthetic.IDENTITY_PROFILES)
 
     def __post_init__(self) -> None:
+        check_ranges(self)  # NaN or a negative named before the checks below compute with it
         if self.size < 2 or self.size & (self.size - 1):
             raise ValueError("size must be a power of two ≥ 2")
         if self.cell_mm <= 0 or self.max_offset_mm <= 0:

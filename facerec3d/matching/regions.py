@@ -37,8 +37,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from facerec3d.geometry.normals import estimate_normals
+from facerec3d.config import check_ranges
 from facerec3d.errors import InputError
+from facerec3d.geometry.normals import estimate_normals
 from facerec3d.matching.base import GalleryNormalised, Matcher, Template, check_face
 from facerec3d.matching.expression import expression_mobility
 from facerec3d.matching.icp import GalleryIndex, ICPConfig, ICPMatcher, ProbeData
@@ -68,6 +69,7 @@ class RegionICPConfig:
     icp: ICPConfig = field(default_factory=ICPConfig)  # each region's ICP (§8.6.1)
 
     def __post_init__(self) -> None:
+        check_ranges(self)  # NaN or a negative named before the checks below compute with it
         if unknown := set(self.regions) - set(NAMED_REGIONS):
             raise ValueError(f"unknown regions {sorted(unknown)}: use some of {NAMED_REGIONS}")
         if not self.regions and self.committee_spacing <= 0:
