@@ -269,3 +269,29 @@ def test_the_compiled_differences_are_numpys():
         got = _differences(z, order)
         ref = ref[np.isfinite(ref)]
         assert len(got) == len(ref) > 500 and np.array_equal(np.sort(got), np.sort(ref))
+
+
+def test_a_face_in_micrometres_or_a_far_point_is_refused_with_memory_bounded(tmp_path):
+    """A face read in the wrong unit (×1000: 200 m across) made the head search's 25 mm grid take 7.6 GB (and a
+    service answer 500 from a MemoryError); a cloud with one coordinate of 1e200 broke the orientation (IndexError).
+    Both are now a failure to acquire that names the span, before any grid is made."""
+    import tracemalloc
+
+    from facerec3d.preprocess import batch
+
+    face = kinect_face(0)[0].points
+    np.save(tmp_path / "micrometres.npy", face[::4] * 1000.0)
+    far = face[::4].copy()
+    far[5, 0] = 1e200
+    np.save(tmp_path / "far.npy", far)
+    tracemalloc.start()
+    try:
+        out = list(batch.preprocess_files([tmp_path / "micrometres.npy", tmp_path / "far.npy"], jobs=1))
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    span = np.ptp(face[::4], axis=0).max()
+    assert f"the scan spans {span:.3g} m, far more than a scene with a face" in out[0].error, out[0].error
+    assert "micrometres" in out[0].error
+    assert "spans 1e+197 m, far more than a scene with a face" in out[1].error, out[1].error
+    assert peak < 200 * 2**20, f"{peak / 2**20:.0f} MiB"

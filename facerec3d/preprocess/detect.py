@@ -288,11 +288,15 @@ MIN_POINTS = 100  # valid points that a face needs at the least
 
 
 MIN_EXTENT_MM = 50.0  # the least a face spans (mm, the longest side of its bounding box): a face is 120-200 mm
+MAX_EXTENT_MM = 50_000.0  # the most a scene with a face spans (mm): depth cameras see 5-10 m. The detector's head
+#   search bins the scene in 25 mm cells (`crown_heights`): a face read in the wrong unit (×1000: 200 m) made that
+#   grid take 7.6 GB; at 50 m it takes 32 MB
 
 
 def check_points(scan: FaceScan) -> None:
     """FailureToAcquire when the scan has fewer valid points than any face needs, saying how many it has, or spans
-    less than any face does (`MIN_EXTENT_MM`: a mesh or cloud in metres, or a depth image read at the wrong scale)."""
+    less than any face does (`MIN_EXTENT_MM`: a mesh or cloud in metres, or a depth image read at the wrong scale),
+    or more than any scene with a face (`MAX_EXTENT_MM`: one in micrometres, or a depth image's intrinsics wrong)."""
     if scan.n_points < MIN_POINTS:
         raise FailureToAcquire(f"only {scan.n_points} valid point{'s' * (scan.n_points != 1)}", scan.meta.path)
     lo, hi = scan.bounding_box()
@@ -300,6 +304,11 @@ def check_points(scan: FaceScan) -> None:
         raise FailureToAcquire(f"the scan spans only {extent:.3g} mm, far too small for a face: facerec3d reads "
                                "millimetres (a mesh or point cloud in metres needs scaling by 1000; a depth image, "
                                "its depth scale in the intrinsics)", scan.meta.path)
+    if extent > MAX_EXTENT_MM:
+        raise FailureToAcquire(f"the scan spans {extent / 1000:.3g} m, far more than a scene with a face: facerec3d "
+                               "reads millimetres (a mesh or point cloud in micrometres needs scaling by 0.001; a "
+                               "depth image, its depth scale and intrinsics (fx, fy, cx, cy in pixels) checked)",
+                               scan.meta.path)
 
 
 def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detection:
