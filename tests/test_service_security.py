@@ -234,6 +234,25 @@ def test_ids_may_not_be_dot_or_dot_dot(app):
     assert app["client"].delete("/v1/subjects/s9").status_code == 200
 
 
+def test_a_repeated_form_field_is_refused_naming_it(app):
+    """`-F subject=a -F subject=b` enrolled b (201), of two `scan` parts the second, and of two `claim`s the last was
+    verified: the form parser keeps the last value unsaid. Now 422 naming the field, and nothing enrolled."""
+    scan, other = probe_file(app["tmp"], 3, 1), probe_file(app["tmp"], 3, 2)
+    part = lambda path, field="scan": (field, (path.name, path.read_bytes()))
+    before = {e.id for e in app["live"].entries}
+    for path, files, data, field in [
+            ("/v1/enrol", [part(scan)], {"subject": ["s9", "s10"]}, "subject"),
+            ("/v1/enrol", [part(scan), part(other)], {"subject": "s9"}, "scan"),
+            ("/v1/enrol", [part(scan)], {"subject": "s9", "scan_id": ["a", "b"]}, "scan_id"),
+            ("/v1/verify", [part(scan, "probe")], {"claim": ["s0", "s3"]}, "claim"),
+            ("/v1/identify", [part(scan, "probe"), part(other, "probe")], {}, "probe"),
+            ("/v1/identify", [part(scan, "probe")], {"k": ["1", "2"]}, "k"),
+            ("/v1/calibrate", [part(scan), part(other)], {"subject": ["s3", "s3"], "fmr": ["0.1", "0.2"]}, "fmr")]:
+        r = app["client"].post(path, files=files, data=data)
+        assert_error(r, 422, f"form field {field!r} is given 2 times")
+    assert {e.id for e in app["live"].entries} == before
+
+
 def test_malformed_intrinsics_are_4xx_with_one_line(app, capfd):
     """Item 6: 100,000-deep JSON, a 5,000-digit integer, a 4,000-digit one (too large for a float)."""
     scan = probe_file(app["tmp"], 3, 1)
