@@ -253,6 +253,29 @@ def test_a_repeated_form_field_is_refused_naming_it(app):
     assert {e.id for e in app["live"].entries} == before
 
 
+def test_a_key_file_that_cannot_be_read_lets_no_key_in_and_says_why(app, caplog):
+    """A keys.json hand-edited to remove key `lost`, with a JSON typo, kept the keys last read: `lost` still got 200
+    and the log said nothing. Now no key works (503) until the file reads again, and the log says why, once."""
+    keys = app["tmp"] / "keys.json"
+    good = keys.read_text()
+    lost = add_key(keys, "lost", "query")
+    client, alice = app["client"], app["client"].headers["X-API-Key"]
+    assert client.get("/v1/stats", headers={"X-API-Key": lost}).status_code == 200
+    try:
+        keys.write_text(good.rstrip().removesuffix("}"))  # `lost` removed, and the closing brace with it
+        with caplog.at_level("WARNING", logger="facerec3d.server"):
+            for key in (lost, alice, lost):
+                assert_error(client.get("/v1/stats", headers={"X-API-Key": key}), 503, "API keys", "retry later")
+        said = [r.getMessage() for r in caplog.records if "no key works" in r.getMessage()]
+        assert len(said) == 1 and str(keys) in said[0] and "not a key file" in said[0], said
+        keys.write_bytes(b"\xff" + good.encode())  # changed again, and not UTF-8: said again
+        assert_error(client.get("/v1/stats", headers={"X-API-Key": alice}), 503, "API keys")
+    finally:
+        keys.write_text(good)
+    assert client.get("/v1/stats", headers={"X-API-Key": alice}).status_code == 200
+    assert_error(client.get("/v1/stats", headers={"X-API-Key": lost}), 401, "unknown API key")
+
+
 def test_malformed_intrinsics_are_4xx_with_one_line(app, capfd):
     """Item 6: 100,000-deep JSON, a 5,000-digit integer, a 4,000-digit one (too large for a float)."""
     scan = probe_file(app["tmp"], 3, 1)

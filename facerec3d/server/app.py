@@ -1,9 +1,9 @@
 """The HTTP service: FastAPI on uvicorn over a `LiveGallery` (what `facerec3d serve` runs).
 
 Every request under /v1 (but /v1/health) and /metrics carries an API key (`X-API-Key: KEY` or
-`Authorization: Bearer KEY`), checked before the body is read: 401 without a known key, 403 outside its
-scope. Uploads larger than the limit are refused (413) from Content-Length or while they stream in. Scan work
-goes through two bounded lanes, one for identifications and verifications (`concurrency`, `queue`) and one
+`Authorization: Bearer KEY`), checked before the body is read: 401 without a known key (503 while the key file
+cannot be read), 403 outside its scope. Uploads larger than the limit are refused (413) from Content-Length or
+while they stream in. Scan work goes through two bounded lanes, one for identifications and verifications (`concurrency`, `queue`) and one
 for enrolments and removals (`write_concurrency`, `write_queue`), so that neither starves the other: in each,
 at most so many requests are worked on, so many more wait, and the rest are answered 503 (lane full) or 429
 (one key holding more than `per_key` places) with Retry-After — decided from the headers, before the body is
@@ -375,6 +375,9 @@ class Gate:
         if needed is not None:
             key = self.service.keys.authenticate(_api_key(headers))
             audited = lane == "write"
+            if key is None and self.service.keys.unreadable is not None:  # the log names the file and the reason
+                return _error(503, "the service cannot read its API keys (see its log); retry later",
+                              {"Retry-After": "5"}), None
             if key is None:
                 given = _api_key(headers)
                 if audited:
