@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from facerec3d.errors import FaceRec3DError
+from facerec3d.errors import FaceRec3DError, InputError
 
 API_KEY_ENV = "FACEREC3D_API_KEY"
 
@@ -97,7 +97,16 @@ class Client:
             except (ValueError, KeyError, TypeError):
                 reason = r.text.strip()[:300] or r.reason_phrase
             raise ServiceError(r.status_code, reason)
-        return r.text if text else r.json()
+        if r.is_redirect:  # not followed (a form is not sent twice): e.g. DELETE /v1/subjects/ for an empty id
+            raise ServiceError(r.status_code, f"the service redirected {method} {path} to "
+                                              f"{r.headers.get('location', '(nowhere)')[:200]}, not followed")
+        if text:
+            return r.text
+        try:
+            return r.json()
+        except ValueError:  # (a proxy's page, or no body): one line, not a JSONDecodeError's traceback
+            raise ServiceError(r.status_code, f"the answer to {method} {path} is not JSON: "
+                                              f"{r.text.strip()[:100]!r}") from None
 
     @staticmethod
     def _scan(path: str | os.PathLike, field: str, intrinsics: str | os.PathLike | None = None) -> tuple[dict, dict]:
@@ -223,9 +232,12 @@ class Client:
         return self._call("GET", "/v1/entries")
 
     def remove(self, ident: str) -> dict:
-        """Remove subject IDENT's entries (or else scan IDENT's): {"removed": [ids], ...}."""
+        """Remove subject IDENT's entries (or else scan IDENT's): {"removed": [ids], ...}. InputError for an id
+        no entry can have ("", ".", ".."), which would make another URL."""
         from urllib.parse import quote
 
+        if ident in ("", ".", ".."):
+            raise InputError(f"remove: bad subject or scan id {ident!r}: give a non-empty id (not . or ..)")
         return self._call("DELETE", f"/v1/subjects/{quote(ident, safe='')}")
 
     def remove_entry(self, entry: int) -> dict:

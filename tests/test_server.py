@@ -707,3 +707,32 @@ def test_a_service_error_on_one_scan_is_its_failure_and_the_enrolment_goes_on(se
     assert r.exit_code == 1 and "0 enrolled, 0 already enrolled, 1 failed to enrol" in r.output, r.output
     monkeypatch.setattr(Client, "enrol", real)
     assert run.invoke(main, ["gallery", "--server", url, "remove", "s31"]).exit_code == 0
+
+
+def mocked(handler) -> Client:
+    """A client whose requests `handler` answers (httpx.MockTransport): no service needed."""
+    client = Client("http://service.test", api_key="fr3d_test")
+    client._http = httpx.Client(base_url=client.url, transport=httpx.MockTransport(handler))
+    return client
+
+
+def test_an_answer_that_is_no_json_or_a_redirect_is_one_line_and_an_empty_id_is_not_sent():
+    """`gallery --server URL remove ""` died on a JSONDecodeError: the service redirects DELETE /v1/subjects/ (307,
+    no body) and the client parsed any answer below 400 as JSON. An id no entry can have is refused before sending;
+    a redirect, or an answer that is no JSON, is a ServiceError in one line."""
+    from facerec3d.errors import InputError
+
+    c = mocked(lambda r: httpx.Response(307, headers={"location": "http://service.test/v1/subjects"}))
+    with pytest.raises(ServiceError, match="redirected DELETE /v1/subjects/x to http://service.test/v1/subjects"):
+        c.remove("x")
+    c = mocked(lambda r: httpx.Response(200, text="<html>a proxy's page</html>"))
+    with pytest.raises(ServiceError, match="the answer to GET /v1/stats is not JSON"):
+        c.stats()
+    sent = []
+    c = mocked(lambda r: sent.append(r) or httpx.Response(200, json={"removed": []}))
+    for ident in ("", ".", ".."):
+        with pytest.raises(InputError, match="bad subject or scan id"):
+            c.remove(ident)
+    assert not sent
+    r = CliRunner().invoke(main, ["gallery", "--server", "http://127.0.0.1:9", "--api-key", "k", "remove", ""])
+    assert r.exit_code == 2 and r.output == "error: remove: bad subject or scan id '': give a non-empty id (not . or ..)\n"
