@@ -65,7 +65,10 @@ class Client:
         self.url = url.rstrip("/")
         key = api_key if api_key is not None else os.environ.get(API_KEY_ENV)
         self.retries = retries
-        self._http = httpx.Client(base_url=self.url, timeout=timeout, headers={"X-API-Key": key} if key else {})
+        try:
+            self._http = httpx.Client(base_url=self.url, timeout=timeout, headers={"X-API-Key": key} if key else {})
+        except httpx.InvalidURL as e:  # (not an httpx.HTTPError: it would end in a traceback)
+            raise InputError(f"bad service URL {url!r}: {e}") from None
         self._httpx = httpx
         self._preprocessor = None  # the service's preprocessing, made on first use (preprocess_locally)
         self._lock = threading.Lock()

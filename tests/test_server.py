@@ -736,3 +736,15 @@ def test_an_answer_that_is_no_json_or_a_redirect_is_one_line_and_an_empty_id_is_
     assert not sent
     r = CliRunner().invoke(main, ["gallery", "--server", "http://127.0.0.1:9", "--api-key", "k", "remove", ""])
     assert r.exit_code == 2 and r.output == "error: remove: bad subject or scan id '': give a non-empty id (not . or ..)\n"
+
+
+def test_a_malformed_service_url_is_one_line(tmp_path):
+    """`identify F --server 'http://[::1'` and `Client('http://[::1')` died on httpx.InvalidURL."""
+    from facerec3d.errors import InputError
+
+    with pytest.raises(InputError, match=r"bad service URL 'http://\[::1'"):
+        Client("http://[::1")
+    r = CliRunner().invoke(main, ["identify", str(probe_file(tmp_path, 0, 1)), "--server", "http://[::1",
+                                  "--api-key", "k"])
+    assert r.exit_code == 2 and r.output.startswith("error: bad service URL 'http://[::1'"), r.output
+    assert r.output.count("\n") == 1
