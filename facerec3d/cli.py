@@ -458,8 +458,9 @@ def _enroll_remote(server, api_key, records, jobs, preprocess_locally=False, int
             if e.status >= 500:  # this scan's: the service answers the next (a refused key or a lost service stops)
                 return f"service error {e.status}: {e.reason}"
             raise
-        except FaceRec3DError as e:  # preprocessing here: unreadable, or no face found
-            return f"{getattr(e, 'reason', e)} (preprocessed locally)"
+        except FaceRec3DError as e:  # read here (a depth frame's intrinsics) or preprocessed here: unreadable, no face
+            reason = str(e).removeprefix(f"{record.path}: ")
+            return f"{reason} (preprocessed locally)" if preprocess_locally else reason
 
     counts = {"enrolled": 0, "skipped": 0, "failed": 0}
     held = []  # the chosen scans the gallery holds (enrolled now or before)

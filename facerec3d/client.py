@@ -115,11 +115,13 @@ class Client:
     def _scan(path: str | os.PathLike, field: str, intrinsics: str | os.PathLike | None = None) -> tuple[dict, dict]:
         """The multipart file of a scan (its name tells the format) and, for a depth frame, its intrinsics: the
         JSON file `intrinsics` when given, else the intrinsics.json found beside the frame."""
-        from facerec3d.io import DEPTH_SUFFIXES, find_intrinsics, scan_suffix
+        from facerec3d.io import DEPTH_SUFFIXES, Intrinsics, find_intrinsics, scan_suffix
 
         p = Path(path)
         data = {}
         if scan_suffix(p) in DEPTH_SUFFIXES + (".npy",) and (camera := intrinsics or find_intrinsics(p)) is not None:
+            Intrinsics.load(camera)  # ScanFormatError naming the file and the reason (not JSON, not UTF-8, ...),
+            #                          as locally, not a JSONDecodeError's traceback
             data["intrinsics"] = json.dumps(json.loads(Path(camera).read_text()))
         return {field: (p.name, p.read_bytes(), "application/octet-stream")}, data
 

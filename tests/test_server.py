@@ -748,3 +748,29 @@ def test_a_malformed_service_url_is_one_line(tmp_path):
                                   "--api-key", "k"])
     assert r.exit_code == 2 and r.output.startswith("error: bad service URL 'http://[::1'"), r.output
     assert r.output.count("\n") == 1
+
+
+def test_a_frame_with_bad_intrinsics_is_that_scans_failure_with_server(setup):
+    """`identify dir/front_1.png --server URL` with a broken intrinsics.json beside the frame (not JSON, not UTF-8)
+    died on a JSONDecodeError / UnicodeDecodeError, and `enroll --server` stopped at that frame with no summary. Now
+    one line naming the file, as locally; the enrolment records it as that scan's failure and goes on."""
+    tmp, url = setup["tmp"], setup["url"]
+    run = CliRunner(env={"FACEREC3D_API_KEY": setup["key"]["alice"]})
+    frames = tmp / "bad-intrinsics"
+    frames.mkdir()
+    frame = frames / "front_1.png"
+    frame.write_bytes(b"\x89PNG\r\n\x1a\n")  # never read: its intrinsics fail first
+    for content, said in [(b'{"fx": 365,', "intrinsics are not valid JSON"),
+                          (b'{"fx": "\xff"}', "cannot read intrinsics (UnicodeDecodeError)")]:
+        (frames / "intrinsics.json").write_bytes(content)
+        r = run.invoke(main, ["identify", str(frame), "--server", url])
+        assert r.exit_code == 2 and r.output.startswith(f"error: {frames / 'intrinsics.json'}: {said}"), r.output
+        assert r.output.count("\n") == 1, r.output
+    good = probe_file(tmp, 32, 1)
+    r = run.invoke(main, ["enroll", str(frame), str(good), "--server", url, "--subject", "s32", "--no-calibrate"])
+    assert r.exit_code == 0, r.output
+    assert f"{frame}: failed to enrol: {frames / 'intrinsics.json'}: cannot read intrinsics" in r.output
+    assert "1 enrolled, 0 already enrolled, 1 failed to enrol" in r.output and "Traceback" not in r.output
+    r = run.invoke(main, ["enroll", str(frame), "--server", url, "--subject", "s32", "--no-calibrate"])
+    assert r.exit_code == 1 and "0 enrolled, 0 already enrolled, 1 failed to enrol" in r.output, r.output
+    assert run.invoke(main, ["gallery", "--server", url, "remove", "s32"]).exit_code == 0
