@@ -219,7 +219,13 @@ class Client:
         """Calibrate the gallery's verification threshold on labelled scans (files or `ScanUpload`s, with their
         subjects; at most 100, in one request within the service's upload limit) at false-match rate `fmr`, or
         at the equal error rate when `fmr` is None; `own`: they are the scans the gallery was enrolled from. Each
-        is scored without the entry enrolled from the same bytes. Returns the threshold's record, committed."""
+        is scored without the entry enrolled from the same bytes. Returns the threshold's record, committed. A single
+        scan (a path or a `ScanUpload`) and a single subject are taken as lists of one, not iterated (a path's
+        characters were read as files)."""
+        if isinstance(scans, (str, os.PathLike, ScanUpload)):
+            scans = [scans]
+        if isinstance(subjects, str):
+            subjects = [subjects]
         uploads = [s if isinstance(s, ScanUpload) else self.upload(s, preprocess_locally, intrinsics) for s in scans]
         form: dict[str, Any] = {"subject": [str(s) for s in subjects], **self._form(fmr=fmr, eer=fmr is None, own=own)}
         cameras = [u.fields.get("intrinsics") for u in uploads]

@@ -774,3 +774,19 @@ def test_a_frame_with_bad_intrinsics_is_that_scans_failure_with_server(setup):
     r = run.invoke(main, ["enroll", str(frame), "--server", url, "--subject", "s32", "--no-calibrate"])
     assert r.exit_code == 1 and "0 enrolled, 0 already enrolled, 1 failed to enrol" in r.output, r.output
     assert run.invoke(main, ["gallery", "--server", url, "remove", "s32"]).exit_code == 0
+
+
+def test_calibrate_takes_a_single_scan_as_a_list_of_one(tmp_path):
+    """`Client.calibrate('file', 'subj')` read the path's characters as files (IsADirectoryError: '.')."""
+    scan = probe_file(tmp_path, 0, 1)
+    sent = []
+
+    def answer(request):
+        sent.append(request.read())
+        return httpx.Response(200, json={"threshold": {"value": 0.5}})
+
+    c = mocked(answer)
+    for one in (str(scan), scan, c.upload(scan)):
+        assert c.calibrate(one, "s0") == {"value": 0.5}
+    for body in sent:
+        assert body.count(b'name="scan"') == 1 and body.count(b'name="subject"') == 1 and b"\r\n\r\ns0\r\n" in body
