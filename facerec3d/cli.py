@@ -458,8 +458,9 @@ def _enroll_remote(server, api_key, records, jobs, preprocess_locally=False, int
             if e.status >= 500:  # this scan's: the service answers the next (a refused key or a lost service stops)
                 return f"service error {e.status}: {e.reason}"
             raise
-        except FaceRec3DError as e:  # preprocessing here: unreadable, or no face found
-            return f"{getattr(e, 'reason', e)} (preprocessed locally)"
+        except FaceRec3DError as e:  # read here (a depth frame's intrinsics) or preprocessed here: unreadable, no face
+            reason = str(e).removeprefix(f"{record.path}: ")
+            return f"{reason} (preprocessed locally)" if preprocess_locally else reason
 
     counts = {"enrolled": 0, "skipped": 0, "failed": 0}
     held = []  # the chosen scans the gallery holds (enrolled now or before)
@@ -1157,20 +1158,26 @@ def train_embedding(out, identities, scans, sensors, identity_profiles, epochs, 
               help="API key file (facerec3d keys add); re-read when it changes.")
 @click.option("--host", default="127.0.0.1", show_default=True,
               help="Address to listen on; loopback by default (other addresses expose the service: use TLS).")
-@click.option("--port", default=8000, show_default=True)
+@click.option("--port", default=8000, show_default=True, type=click.IntRange(0, 65535),
+              help="Port to listen on (0: a free one, which the first line names).")
 @_engine_options
 @click.option("--method", help=f"Matching method of a new gallery (default {DEFAULT_METHOD}); an existing gallery's is "
               "checked.")
 @click.option("--method-config", type=click.Path(exists=True, dir_okay=False), help="TOML or JSON method settings.")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False),
               help="Preprocessing settings of a new gallery; an existing gallery's are checked.")
-@click.option("--concurrency", type=int, help="Requests worked on at once [default: 2 per worker].")
-@click.option("--queue", default=32, show_default=True, help="Requests that may wait beyond those; more get 503.")
-@click.option("--per-key", type=int, help="Requests one key may have queued or running; more get 429 "
-              "[default: half of concurrency + queue].")
-@click.option("--timeout", default=60.0, show_default=True, help="Time limit per request (s); past it, 504.")
-@click.option("--max-upload-mb", default=64.0, show_default=True, help="Largest upload (MiB); larger get 413.")
-@click.option("--max-points", default=5_000_000, show_default=True, help="Largest scan (points); larger get 413.")
+@click.option("--concurrency", type=click.IntRange(min=1), help="Requests worked on at once [default: 2 per worker].")
+@click.option("--queue", default=32, show_default=True, type=click.IntRange(min=0),
+              help="Requests that may wait beyond those; more get 503.")
+@click.option("--per-key", type=click.IntRange(min=1), help="Requests one key may have queued or running; more get "
+              "429 [default: half of concurrency + queue].")
+@click.option("--timeout", default=60.0, show_default=True, type=click.FloatRange(min=0, min_open=True),
+              callback=lambda ctx, param, v: _finite(v, "--timeout"), help="Time limit per request (s); past it, 504.")
+@click.option("--max-upload-mb", default=64.0, show_default=True, type=click.FloatRange(min=0, min_open=True),
+              callback=lambda ctx, param, v: _finite(v, "--max-upload-mb"),
+              help="Largest upload (MiB); larger get 413.")
+@click.option("--max-points", default=5_000_000, show_default=True, type=click.IntRange(min=1),
+              help="Largest scan (points); larger get 413.")
 @click.option("--audit", type=click.Path(dir_okay=False),
               help="Audit log, JSON lines (who enrolled or removed what, when) [default: GALLERY.audit.jsonl].")
 @click.option("--ssl-certfile", type=click.Path(exists=True, dir_okay=False), help="TLS certificate (PEM).")

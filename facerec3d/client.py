@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from facerec3d.errors import FaceRec3DError
+from facerec3d.errors import FaceRec3DError, InputError
 
 API_KEY_ENV = "FACEREC3D_API_KEY"
 
@@ -65,7 +65,10 @@ class Client:
         self.url = url.rstrip("/")
         key = api_key if api_key is not None else os.environ.get(API_KEY_ENV)
         self.retries = retries
-        self._http = httpx.Client(base_url=self.url, timeout=timeout, headers={"X-API-Key": key} if key else {})
+        try:
+            self._http = httpx.Client(base_url=self.url, timeout=timeout, headers={"X-API-Key": key} if key else {})
+        except httpx.InvalidURL as e:  # (not an httpx.HTTPError: it would end in a traceback)
+            raise InputError(f"bad service URL {url!r}: {e}") from None
         self._httpx = httpx
         self._preprocessor = None  # the service's preprocessing, made on first use (preprocess_locally)
         self._lock = threading.Lock()
@@ -97,17 +100,28 @@ class Client:
             except (ValueError, KeyError, TypeError):
                 reason = r.text.strip()[:300] or r.reason_phrase
             raise ServiceError(r.status_code, reason)
-        return r.text if text else r.json()
+        if r.is_redirect:  # not followed (a form is not sent twice): e.g. DELETE /v1/subjects/ for an empty id
+            raise ServiceError(r.status_code, f"the service redirected {method} {path} to "
+                                              f"{r.headers.get('location', '(nowhere)')[:200]}, not followed")
+        if text:
+            return r.text
+        try:
+            return r.json()
+        except ValueError:  # (a proxy's page, or no body): one line, not a JSONDecodeError's traceback
+            raise ServiceError(r.status_code, f"the answer to {method} {path} is not JSON: "
+                                              f"{r.text.strip()[:100]!r}") from None
 
     @staticmethod
     def _scan(path: str | os.PathLike, field: str, intrinsics: str | os.PathLike | None = None) -> tuple[dict, dict]:
         """The multipart file of a scan (its name tells the format) and, for a depth frame, its intrinsics: the
         JSON file `intrinsics` when given, else the intrinsics.json found beside the frame."""
-        from facerec3d.io import DEPTH_SUFFIXES, find_intrinsics, scan_suffix
+        from facerec3d.io import DEPTH_SUFFIXES, Intrinsics, find_intrinsics, scan_suffix
 
         p = Path(path)
         data = {}
         if scan_suffix(p) in DEPTH_SUFFIXES + (".npy",) and (camera := intrinsics or find_intrinsics(p)) is not None:
+            Intrinsics.load(camera)  # ScanFormatError naming the file and the reason (not JSON, not UTF-8, ...),
+            #                          as locally, not a JSONDecodeError's traceback
             data["intrinsics"] = json.dumps(json.loads(Path(camera).read_text()))
         return {field: (p.name, p.read_bytes(), "application/octet-stream")}, data
 
@@ -205,7 +219,13 @@ class Client:
         """Calibrate the gallery's verification threshold on labelled scans (files or `ScanUpload`s, with their
         subjects; at most 100, in one request within the service's upload limit) at false-match rate `fmr`, or
         at the equal error rate when `fmr` is None; `own`: they are the scans the gallery was enrolled from. Each
-        is scored without the entry enrolled from the same bytes. Returns the threshold's record, committed."""
+        is scored without the entry enrolled from the same bytes. Returns the threshold's record, committed. A single
+        scan (a path or a `ScanUpload`) and a single subject are taken as lists of one, not iterated (a path's
+        characters were read as files)."""
+        if isinstance(scans, (str, os.PathLike, ScanUpload)):
+            scans = [scans]
+        if isinstance(subjects, str):
+            subjects = [subjects]
         uploads = [s if isinstance(s, ScanUpload) else self.upload(s, preprocess_locally, intrinsics) for s in scans]
         form: dict[str, Any] = {"subject": [str(s) for s in subjects], **self._form(fmr=fmr, eer=fmr is None, own=own)}
         cameras = [u.fields.get("intrinsics") for u in uploads]
@@ -223,9 +243,12 @@ class Client:
         return self._call("GET", "/v1/entries")
 
     def remove(self, ident: str) -> dict:
-        """Remove subject IDENT's entries (or else scan IDENT's): {"removed": [ids], ...}."""
+        """Remove subject IDENT's entries (or else scan IDENT's): {"removed": [ids], ...}. InputError for an id
+        no entry can have ("", ".", ".."), which would make another URL."""
         from urllib.parse import quote
 
+        if ident in ("", ".", ".."):
+            raise InputError(f"remove: bad subject or scan id {ident!r}: give a non-empty id (not . or ..)")
         return self._call("DELETE", f"/v1/subjects/{quote(ident, safe='')}")
 
     def remove_entry(self, entry: int) -> dict:

@@ -76,6 +76,24 @@ def test_a_threshold_that_is_no_number_is_refused(tmp_path):
         assert r.exit_code == 2 and f"--threshold: must be a finite number, not {float(value)}" in r.output, r.output
 
 
+@pytest.mark.parametrize("option, value, said", [
+    ("--port", "70000", "not in the range 0<=x<=65535"), ("--port", "-1", "not in the range 0<=x<=65535"),
+    ("--timeout", "nan", "must be a finite number, not nan"), ("--timeout", "inf", "must be a finite number"),
+    ("--timeout", "-1", "not in the range x>0"), ("--timeout", "0", "not in the range x>0"),
+    ("--max-upload-mb", "nan", "must be a finite number, not nan"), ("--max-upload-mb", "0", "not in the range x>0"),
+    ("--queue", "-5", "not in the range x>=0"), ("--per-key", "-1", "not in the range x>=1"),
+    ("--per-key", "0", "not in the range x>=1"), ("--max-points", "-1", "not in the range x>=1"),
+    ("--concurrency", "-1", "not in the range x>=1")])
+def test_serve_refuses_limits_it_cannot_keep_in_one_line(tmp_path, option, value, said):
+    """`--port 70000` died on an OverflowError, `--timeout nan` on "cannot convert float NaN to integer"; `--timeout
+    -1` served and answered every request 504; negative queue, per-key, max-points and concurrency were taken."""
+    r = CliRunner().invoke(main, ["serve", "--gallery", str(tmp_path / "g.sqlite"), "--keys", str(tmp_path / "k.json"),
+                                  option, value], prog_name="facerec3d")
+    assert r.exit_code == 2 and r.output.count("\n") == 1 and r.output.startswith("error: Invalid value for"), r.output
+    assert option in r.output and said in r.output and "(see facerec3d serve --help)" in r.output, r.output
+    assert not (tmp_path / "g.sqlite").exists()
+
+
 def test_bad_input_is_one_line_and_exit_code_2(tmp_path):
     bad = tmp_path / "bad.bnt"
     bad.write_bytes(b"\x01\x02")

@@ -707,3 +707,86 @@ def test_a_service_error_on_one_scan_is_its_failure_and_the_enrolment_goes_on(se
     assert r.exit_code == 1 and "0 enrolled, 0 already enrolled, 1 failed to enrol" in r.output, r.output
     monkeypatch.setattr(Client, "enrol", real)
     assert run.invoke(main, ["gallery", "--server", url, "remove", "s31"]).exit_code == 0
+
+
+def mocked(handler) -> Client:
+    """A client whose requests `handler` answers (httpx.MockTransport): no service needed."""
+    client = Client("http://service.test", api_key="fr3d_test")
+    client._http = httpx.Client(base_url=client.url, transport=httpx.MockTransport(handler))
+    return client
+
+
+def test_an_answer_that_is_no_json_or_a_redirect_is_one_line_and_an_empty_id_is_not_sent():
+    """`gallery --server URL remove ""` died on a JSONDecodeError: the service redirects DELETE /v1/subjects/ (307,
+    no body) and the client parsed any answer below 400 as JSON. An id no entry can have is refused before sending;
+    a redirect, or an answer that is no JSON, is a ServiceError in one line."""
+    from facerec3d.errors import InputError
+
+    c = mocked(lambda r: httpx.Response(307, headers={"location": "http://service.test/v1/subjects"}))
+    with pytest.raises(ServiceError, match="redirected DELETE /v1/subjects/x to http://service.test/v1/subjects"):
+        c.remove("x")
+    c = mocked(lambda r: httpx.Response(200, text="<html>a proxy's page</html>"))
+    with pytest.raises(ServiceError, match="the answer to GET /v1/stats is not JSON"):
+        c.stats()
+    sent = []
+    c = mocked(lambda r: sent.append(r) or httpx.Response(200, json={"removed": []}))
+    for ident in ("", ".", ".."):
+        with pytest.raises(InputError, match="bad subject or scan id"):
+            c.remove(ident)
+    assert not sent
+    r = CliRunner().invoke(main, ["gallery", "--server", "http://127.0.0.1:9", "--api-key", "k", "remove", ""])
+    assert r.exit_code == 2 and r.output == "error: remove: bad subject or scan id '': give a non-empty id (not . or ..)\n"
+
+
+def test_a_malformed_service_url_is_one_line(tmp_path):
+    """`identify F --server 'http://[::1'` and `Client('http://[::1')` died on httpx.InvalidURL."""
+    from facerec3d.errors import InputError
+
+    with pytest.raises(InputError, match=r"bad service URL 'http://\[::1'"):
+        Client("http://[::1")
+    r = CliRunner().invoke(main, ["identify", str(probe_file(tmp_path, 0, 1)), "--server", "http://[::1",
+                                  "--api-key", "k"])
+    assert r.exit_code == 2 and r.output.startswith("error: bad service URL 'http://[::1'"), r.output
+    assert r.output.count("\n") == 1
+
+
+def test_a_frame_with_bad_intrinsics_is_that_scans_failure_with_server(setup):
+    """`identify dir/front_1.png --server URL` with a broken intrinsics.json beside the frame (not JSON, not UTF-8)
+    died on a JSONDecodeError / UnicodeDecodeError, and `enroll --server` stopped at that frame with no summary. Now
+    one line naming the file, as locally; the enrolment records it as that scan's failure and goes on."""
+    tmp, url = setup["tmp"], setup["url"]
+    run = CliRunner(env={"FACEREC3D_API_KEY": setup["key"]["alice"]})
+    frames = tmp / "bad-intrinsics"
+    frames.mkdir()
+    frame = frames / "front_1.png"
+    frame.write_bytes(b"\x89PNG\r\n\x1a\n")  # never read: its intrinsics fail first
+    for content, said in [(b'{"fx": 365,', "intrinsics are not valid JSON"),
+                          (b'{"fx": "\xff"}', "cannot read intrinsics (UnicodeDecodeError)")]:
+        (frames / "intrinsics.json").write_bytes(content)
+        r = run.invoke(main, ["identify", str(frame), "--server", url])
+        assert r.exit_code == 2 and r.output.startswith(f"error: {frames / 'intrinsics.json'}: {said}"), r.output
+        assert r.output.count("\n") == 1, r.output
+    good = probe_file(tmp, 32, 1)
+    r = run.invoke(main, ["enroll", str(frame), str(good), "--server", url, "--subject", "s32", "--no-calibrate"])
+    assert r.exit_code == 0, r.output
+    assert f"{frame}: failed to enrol: {frames / 'intrinsics.json'}: cannot read intrinsics" in r.output
+    assert "1 enrolled, 0 already enrolled, 1 failed to enrol" in r.output and "Traceback" not in r.output
+    r = run.invoke(main, ["enroll", str(frame), "--server", url, "--subject", "s32", "--no-calibrate"])
+    assert r.exit_code == 1 and "0 enrolled, 0 already enrolled, 1 failed to enrol" in r.output, r.output
+    assert run.invoke(main, ["gallery", "--server", url, "remove", "s32"]).exit_code == 0
+
+
+def test_calibrate_takes_a_single_scan_as_a_list_of_one(tmp_path):
+    """`Client.calibrate('file', 'subj')` read the path's characters as files (IsADirectoryError: '.')."""
+    scan = probe_file(tmp_path, 0, 1)
+    sent = []
+
+    def answer(request):
+        sent.append(request.read())
+        return httpx.Response(200, json={"threshold": {"value": 0.5}})
+
+    c = mocked(answer)
+    for one in (str(scan), scan, c.upload(scan)):
+        assert c.calibrate(one, "s0") == {"value": 0.5}
+    for body in sent:
+        assert body.count(b'name="scan"') == 1 and body.count(b'name="subject"') == 1 and b"\r\n\r\ns0\r\n" in body

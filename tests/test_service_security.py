@@ -234,6 +234,48 @@ def test_ids_may_not_be_dot_or_dot_dot(app):
     assert app["client"].delete("/v1/subjects/s9").status_code == 200
 
 
+def test_a_repeated_form_field_is_refused_naming_it(app):
+    """`-F subject=a -F subject=b` enrolled b (201), of two `scan` parts the second, and of two `claim`s the last was
+    verified: the form parser keeps the last value unsaid. Now 422 naming the field, and nothing enrolled."""
+    scan, other = probe_file(app["tmp"], 3, 1), probe_file(app["tmp"], 3, 2)
+    part = lambda path, field="scan": (field, (path.name, path.read_bytes()))
+    before = {e.id for e in app["live"].entries}
+    for path, files, data, field in [
+            ("/v1/enrol", [part(scan)], {"subject": ["s9", "s10"]}, "subject"),
+            ("/v1/enrol", [part(scan), part(other)], {"subject": "s9"}, "scan"),
+            ("/v1/enrol", [part(scan)], {"subject": "s9", "scan_id": ["a", "b"]}, "scan_id"),
+            ("/v1/verify", [part(scan, "probe")], {"claim": ["s0", "s3"]}, "claim"),
+            ("/v1/identify", [part(scan, "probe"), part(other, "probe")], {}, "probe"),
+            ("/v1/identify", [part(scan, "probe")], {"k": ["1", "2"]}, "k"),
+            ("/v1/calibrate", [part(scan), part(other)], {"subject": ["s3", "s3"], "fmr": ["0.1", "0.2"]}, "fmr")]:
+        r = app["client"].post(path, files=files, data=data)
+        assert_error(r, 422, f"form field {field!r} is given 2 times")
+    assert {e.id for e in app["live"].entries} == before
+
+
+def test_a_key_file_that_cannot_be_read_lets_no_key_in_and_says_why(app, caplog):
+    """A keys.json hand-edited to remove key `lost`, with a JSON typo, kept the keys last read: `lost` still got 200
+    and the log said nothing. Now no key works (503) until the file reads again, and the log says why, once."""
+    keys = app["tmp"] / "keys.json"
+    good = keys.read_text()
+    lost = add_key(keys, "lost", "query")
+    client, alice = app["client"], app["client"].headers["X-API-Key"]
+    assert client.get("/v1/stats", headers={"X-API-Key": lost}).status_code == 200
+    try:
+        keys.write_text(good.rstrip().removesuffix("}"))  # `lost` removed, and the closing brace with it
+        with caplog.at_level("WARNING", logger="facerec3d.server"):
+            for key in (lost, alice, lost):
+                assert_error(client.get("/v1/stats", headers={"X-API-Key": key}), 503, "API keys", "retry later")
+        said = [r.getMessage() for r in caplog.records if "no key works" in r.getMessage()]
+        assert len(said) == 1 and str(keys) in said[0] and "not a key file" in said[0], said
+        keys.write_bytes(b"\xff" + good.encode())  # changed again, and not UTF-8: said again
+        assert_error(client.get("/v1/stats", headers={"X-API-Key": alice}), 503, "API keys")
+    finally:
+        keys.write_text(good)
+    assert client.get("/v1/stats", headers={"X-API-Key": alice}).status_code == 200
+    assert_error(client.get("/v1/stats", headers={"X-API-Key": lost}), 401, "unknown API key")
+
+
 def test_malformed_intrinsics_are_4xx_with_one_line(app, capfd):
     """Item 6: 100,000-deep JSON, a 5,000-digit integer, a 4,000-digit one (too large for a float)."""
     scan = probe_file(app["tmp"], 3, 1)

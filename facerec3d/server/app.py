@@ -1,9 +1,9 @@
 """The HTTP service: FastAPI on uvicorn over a `LiveGallery` (what `facerec3d serve` runs).
 
 Every request under /v1 (but /v1/health) and /metrics carries an API key (`X-API-Key: KEY` or
-`Authorization: Bearer KEY`), checked before the body is read: 401 without a known key, 403 outside its
-scope. Uploads larger than the limit are refused (413) from Content-Length or while they stream in. Scan work
-goes through two bounded lanes, one for identifications and verifications (`concurrency`, `queue`) and one
+`Authorization: Bearer KEY`), checked before the body is read: 401 without a known key (503 while the key file
+cannot be read), 403 outside its scope. Uploads larger than the limit are refused (413) from Content-Length or
+while they stream in. Scan work goes through two bounded lanes, one for identifications and verifications (`concurrency`, `queue`) and one
 for enrolments and removals (`write_concurrency`, `write_queue`), so that neither starves the other: in each,
 at most so many requests are worked on, so many more wait, and the rest are answered 503 (lane full) or 429
 (one key holding more than `per_key` places) with Retry-After — decided from the headers, before the body is
@@ -375,6 +375,9 @@ class Gate:
         if needed is not None:
             key = self.service.keys.authenticate(_api_key(headers))
             audited = lane == "write"
+            if key is None and self.service.keys.unreadable is not None:  # the log names the file and the reason
+                return _error(503, "the service cannot read its API keys (see its log); retry later",
+                              {"Retry-After": "5"}), None
             if key is None:
                 given = _api_key(headers)
                 if audited:
@@ -551,6 +554,16 @@ def _part_text(part: str | UploadFile | None) -> str | None:
     return part.file.read(MAX_INTRINSICS_CHARS + 1).decode("utf-8", errors="replace")
 
 
+async def _once(request: Request, *several: str) -> None:
+    """ApiError 422 naming a form field (or file part) given more than once, but for the fields `several` that take
+    one value per scan: the form parser keeps only the last of a repeated field, so `-F subject=a -F subject=b`
+    enrolled b, and of two `scan` parts the first was dropped unsaid. Called first, before anything is done."""
+    counts = Counter(name for name, _ in (await request.form()).multi_items())
+    repeated = [name for name, n in counts.items() if n > 1 and name not in several]
+    if repeated:
+        raise ApiError(422, f"form field {repeated[0][:40]!r} is given {counts[repeated[0]]} times: give it once")
+
+
 def _work(job: Job, live: LiveGallery, fn, *args):
     """A worker job, its refusals as HTTP errors."""
     try:
@@ -722,6 +735,7 @@ def create_app(service: Service):
         """The new entry (201), or: 409 already enrolled (the same bytes), 422 a failure to enrol with its reason
         (recorded in the gallery's failures to enrol), 413 / 415 outside the limits. Answered only after the
         entry is committed to the store."""
+        await _once(request)
         subject = _label(subject, "subject")
         upload = _upload(scan, format, intrinsics)
         scan_id = _label(scan_id, "scan_id") if scan_id is not None else \
@@ -739,6 +753,7 @@ def create_app(service: Service):
                        format: str | None = Form(None), intrinsics: str | UploadFile | None = Form(None)):
         """Candidates best first (rank, entry, subject, scan_id, score: higher is more similar). Under the
         cascade, faces off the shortlist are not listed."""
+        await _once(request)
         config = None
         if cascade:
             if not live.cascadable:
@@ -756,6 +771,7 @@ def create_app(service: Service):
                                                                       "gallery's calibrated one, else the method's)"),
                      format: str | None = Form(None), intrinsics: str | UploadFile | None = Form(None)):
         """The decision, the score and the threshold used; 404 when the claimed subject is not enrolled."""
+        await _once(request)
         try:
             threshold = live.threshold(threshold)
         except GalleryError as e:
@@ -786,6 +802,7 @@ def create_app(service: Service):
         records the threshold, as `facerec3d gallery G calibrate SCANS` does for a store file; verify uses it
         from then on. The record (value, rule, pair counts, ...), answered after it is committed; 422 when the
         scans cannot give one (none usable, a single subject), 409 for an empty gallery."""
+        await _once(request, "scan", "subject", "intrinsics")
         if not live.entries:
             raise ApiError(409, "the gallery is empty")
         if len(scan) > MAX_SCANS:

@@ -7,7 +7,8 @@ A key is "fr3d_" + 43 URL-safe characters (32 random bytes from `secrets`): with
 plain SHA-256 cannot be brute-forced, so no slow password hash is needed and checking a key costs a
 microsecond. The file is written atomically (a temporary file renamed over it) with mode 0600, and a
 running service picks up changes at the next request: a key removed, or the whole file deleted, no longer
-works (each reload is logged). A file that cannot be parsed (an edit half done) keeps the keys last read.
+works (each reload is logged). A changed file that cannot be read (an edit half done, a typo) lets no key in
+until it can (the service answers 503), and the log says so: keeping the keys last read kept a removed key working.
 
 File format: {"format": "facerec3d-keys-1", "keys": [{"name", "scopes": [...], "sha256", "created"}]}
 """
@@ -128,13 +129,19 @@ def remove_key(path: str | os.PathLike, name: str) -> None:
 
 
 class KeyFile:
-    """A key file as a running service reads it: reloaded when it changes on disk."""
+    """A key file as a running service reads it: reloaded when it changes on disk.
+
+    A changed file that cannot be read (an edit half done, a JSON typo) fails closed: no key works (`unreadable`
+    says why, and the service answers 503) until the file reads again, since keeping the keys last read would
+    keep a key just removed working, unsaid. Each such change is logged in one line naming the file and the reason.
+    """
 
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
         self._lock = threading.Lock()
         self._stamp: tuple | None = None
         self._keys: dict[str, ApiKey] = {}
+        self.unreadable: str | None = None  # why the file, changed, cannot be read (no key works meanwhile)
         self._load()
         if not self._keys:
             raise KeyFileError(f"{self.path}: no keys (make one: facerec3d keys add NAME --scopes "
@@ -155,23 +162,35 @@ class KeyFile:
             if self._stamp is not None:
                 log.warning("facerec3d service: key file %s changed: %d keys (%s)", self.path, len(keys),
                             ", ".join(sorted(k.name for k in keys.values()))[:500])
-            self._keys, self._stamp = keys, stamp
+            self._keys, self._stamp, self.unreadable = keys, stamp, None
 
-    def authenticate(self, key: str | None) -> ApiKey | None:
-        """The key's owner and scopes, or None for a missing or unknown key (every key, once the file is gone)."""
-        if not key:
-            return None
+    def _reload(self) -> None:
+        """Reload the file if it changed; once it is gone, or while it cannot be read, no key works."""
         try:
             self._load()
-        except KeyFileError:
-            if not self.path.exists():  # deleted: every key is revoked
-                with self._lock:
+        except (KeyFileError, OSError) as e:
+            with self._lock:
+                if not self.path.exists():  # deleted: every key is revoked
                     if self._keys:
                         log.warning("facerec3d service: key file %s removed: all %d keys revoked", self.path,
                                     len(self._keys))
-                    self._keys, self._stamp = {}, None
-            # else a broken edit of the file: keep the keys last read
-        except OSError:
-            pass
+                    self._keys, self._stamp, self.unreadable = {}, None, None
+                    return
+                try:
+                    st = self.path.stat()
+                    stamp = (st.st_mtime_ns, st.st_size, st.st_ino)
+                except OSError:
+                    stamp = None
+                reason = str(e)  # names the file
+                if (stamp, reason) != (self._stamp, self.unreadable):  # once per change, not at every request
+                    log.warning("facerec3d service: %s: no key works until the key file can be read", reason)
+                self._keys, self._stamp, self.unreadable = {}, stamp, reason
+
+    def authenticate(self, key: str | None) -> ApiKey | None:
+        """The key's owner and scopes, or None for a missing or unknown key (every key, once the file is gone or
+        while it cannot be read: see `unreadable`)."""
+        if not key:
+            return None
+        self._reload()
         # a lookup by hash: its timing depends on the hash of the guess, which tells nothing about a real key
         return self._keys.get(key_hash(key))
