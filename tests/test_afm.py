@@ -11,6 +11,7 @@ from click.testing import CliRunner
 
 from facerec3d.cli import main
 from facerec3d.datasets.synthetic import OCCLUDERS, identity_profile, quick_scan
+from facerec3d.errors import FaceRec3DError
 from facerec3d.gallery.store import GalleryStore
 from facerec3d.matching.afm import AFMConfig, AFMMatcher, haar_pyramid
 from facerec3d.matching.base import Template
@@ -204,6 +205,18 @@ def test_model_methods_through_the_store_and_a_saved_model(tmp_path, faces):
             matcher.save(tmp_path / "model.npz")
             reloaded = load_matcher(tmp_path / "model.npz")
             np.testing.assert_array_equal(reloaded.residue_.components, matcher.residue_.components)
+            arrays, attrs = matcher.state()  # a damaged residue model is refused when loaded, not used
+            d, p = arrays["residue_components"].shape
+            for change, reason in (({"residue_components": arrays["residue_components"][:100]},
+                                    rf"'residue_components' of shape \(100, {p}\), not \({d}, {p}\)"),
+                                   ({"residue_eigenvalues": arrays["residue_eigenvalues"][:-1]},
+                                    rf"'residue_eigenvalues' of shape \({p - 1},\), not \({p},\)"),
+                                   ({"residue_components": np.full((d, p), np.nan)},
+                                    "'residue_components' holds NaN or infinite values")):
+                Template(None, None, "afm", {**arrays, **change}, {"options": matcher.options(), "state": attrs}
+                         ).save(tmp_path / "bad.npz")
+                with pytest.raises(FaceRec3DError, match=rf"bad.npz: not a usable afm model \({reason}\)$"):
+                    load_matcher(tmp_path / "bad.npz")
         path = tmp_path / f"{method}-{bool(options)}.sqlite"
         with GalleryStore(path, create=True) as store:
             store.bind(PreprocessConfig(), matcher)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from facerec3d.config import read_settings
-from facerec3d.matching.base import Template
+from facerec3d.matching.base import Template, learnt_arrays
 from facerec3d.matching.fusion import FusionConfig, FusionMatcher, pack, unpack
 from facerec3d.matching.normalisation import borda, fuse, hampel_location_scale, normalise
 from facerec3d.matching.icp import ICPMatcher
@@ -131,7 +131,7 @@ class _Learner(ICPMatcher):
         return {"count": self.learnt}, {"subjects": int(self.learnt[0])}
 
     def set_state(self, arrays, attrs):
-        self.learnt = np.asarray(arrays["count"])
+        self.learnt, = learnt_arrays(arrays, {"count": (1,)})
         assert attrs == {"subjects": int(self.learnt[0])}
 
 
@@ -146,6 +146,8 @@ def test_fusion_fits_members_and_keeps_their_state(faces):
     other.members[0] = _Learner()
     other.set_state(arrays, attrs)
     np.testing.assert_array_equal(other.members[0].learnt, [3])
+    with pytest.raises(ValueError, match=r"^member 'icp': 'count' of shape \(2,\), not \(1,\)$"):  # which member
+        other.set_state({"0__count": np.array([3, 4])}, attrs)
 
 
 def test_galleries_stored_before_the_plane_capped_score_keep_the_books_score(tmp_path):

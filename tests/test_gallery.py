@@ -315,3 +315,48 @@ def test_cli_enroll_identify_verify_and_gallery(tmp_path):
     assert len(listed) == 3 and listed[-1].startswith("failed") and other not in {l.split()[1] for l in listed[:2]}
     r = run.invoke(main, ["gallery", store, "remove", other])
     assert r.exit_code == 2 and "no subject or scan" in r.output
+
+
+def test_the_python_api_refuses_a_removal_the_command_line_refuses_and_deletes_nothing(tmp_path):
+    """`GalleryStore.remove('s0', entry=ID)` ignored the subject and deleted entry ID, another person's; `entry='3'`
+    matched nothing and returned 0. Both refused in one line (InputError), nothing deleted."""
+    from facerec3d.errors import InputError
+
+    path = tmp_path / "g.sqlite"
+    with GalleryStore(path, create=True) as store:
+        store.bind(PreprocessConfig(), ArraysMatcher())
+        for i in range(2):
+            store.add(big_template(i), f"/data/{i}.abs")
+        before = store.entries()
+        other = before[1].id  # s1's entry
+        for ident, entry, reason in (("s0", other, rf"remove a subject or scan id \('s0'\) or an entry id \({other}\), "
+                                                   "not both"),
+                                     (None, str(other), rf"an entry id is a whole number .*, not '{other}'"),
+                                     (None, True, "an entry id is a whole number .*, not True"),
+                                     (None, 1.0, "an entry id is a whole number .*, not 1.0"),
+                                     (0, None, "a subject or scan id is a text, not 0")):
+            with pytest.raises(InputError, match=f"^{path}: {reason}"):
+                store.remove(ident, entry)
+        assert store.entries() == before
+        assert store.remove(entry=np.int64(other)) == 1 and [e.subject for e in store.entries()] == ["s0"]
+
+
+def test_enroll_scans_takes_paths_and_verify_scan_refuses_a_threshold_that_is_not_a_finite_number(tmp_path):
+    """`enroll_scans(store, ['file.abs.gz'], matcher)` gave AttributeError: 'str' object has no attribute 'path';
+    `verify_scan(..., threshold=nan)` returned (False, score, nan) and threshold='1' a TypeError from >=."""
+    from facerec3d.errors import InputError
+    from facerec3d.gallery.service import enroll_scans, scan_records, verify_scan
+
+    _, gallery_scans, probe, probe_subject, _ = cli_dataset(tmp_path / "d", 0.2, subjects=2)
+    with GalleryStore(tmp_path / "g.sqlite", create=True) as store:
+        report = enroll_scans(store, [str(gallery_scans[0]), *scan_records(gallery_scans[1:])], ICPMatcher())
+        assert report.enrolled == 2 and not report.failures
+        assert enroll_scans(store, gallery_scans[0], ICPMatcher()).skipped == [str(gallery_scans[0].resolve())]
+        assert sorted(e.subject for e in store.entries()) == sorted(r.subject for r in scan_records(gallery_scans))
+        with pytest.raises(InputError, match=r"^enroll_scans takes scan records \(scan_records\) or paths .*, not 3$"):
+            enroll_scans(store, [3], ICPMatcher())
+        for bad in (float("nan"), float("inf"), "1", True, None.__class__):
+            with pytest.raises(InputError, match=r"^a verification threshold is a finite number, not "):
+                verify_scan(store, probe, probe_subject, threshold=bad)
+        accepted, score, threshold = verify_scan(store, probe, probe_subject, threshold=np.float32(-1e6))
+        assert accepted and np.isfinite(score) and threshold == -1e6 and type(threshold) is float

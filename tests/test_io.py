@@ -369,6 +369,13 @@ BAD_FILES = [
     ("bad.xyz", b"1 2 3\n1 2 inf\n", "non-finite"),
     ("bad.csv", b"", "no valid points"),
     ("bad.obj", b"\x00\xff\xfe garbage", "no valid points"),
+    # an OFF cut before the faces its counts line promises was read as a scan of its vertices (a PLY is refused)
+    ("bad.off", b"OFF\n3 99999999999 0\n0 0 0\n1 0 0\n0 1 0\n",
+     "truncated OFF: header promises 3 vertices and 99999999999 faces (a line each), the file holds only 3 lines"),
+    ("bad.off", b"OFF\n# a comment\n3 2 0\n0 0 0\n1 0 0 # a vertex\n\n0 1 0\n3 0 1 2\n",
+     "truncated OFF: header promises 3 vertices and 2 faces (a line each), the file holds only 4 lines"),
+    ("bad.off", b"OFF\n3 1 0\n0 0 0\n1 0 0\n", "truncated OFF: header promises 3 vertices and 1 faces"),
+    ("bad.off", b"OFF\n-3 1 0\n0 0 0\n", "bad OFF header: the vertex and face counts are '-3 1', not numbers"),
     ("bad.stl", b"solid x\nfacet normal 0 0 1\nouter loop\nvertex 1 2\n", "no valid points"),
 ]
 
@@ -380,6 +387,28 @@ def test_bad_files_raise_scan_format_error_naming_file_and_reason(tmp_path, name
     with pytest.raises(ScanFormatError) as e:
         load_scan(p)
     assert str(e.value).startswith(str(p)) and reason in str(e.value)
+
+
+def test_an_off_counts_line_of_billions_of_faces_allocates_nothing_by_it(tmp_path):
+    """The counts are checked against the lines the file holds, never used to size anything: refused in one line, the
+    memory used bounded by the file's size whatever the counts line says."""
+    import tracemalloc
+
+    def peak(counts: bytes) -> int:
+        p = tmp_path / "huge.off"
+        p.write_bytes(b"OFF\n" + counts + b"\n0 0 0\n1 0 0\n0 1 0\n" + b"3 0 1 2\n" * 1000)
+        tracemalloc.start()
+        try:
+            with pytest.raises(ScanFormatError, match=f"{p}: truncated OFF: header promises 3 vertices and "):
+                load_scan(p)
+            return tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+
+    assert peak(b"3 99999999999999999999 0") < peak(b"3 1001 0") + (1 << 20)  # as for a file one face short
+    p = tmp_path / "ok.off"
+    p.write_bytes(b"OFF\n3 2 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n4 0 1 2 0\n")  # counts met: read, a quad fanned
+    assert load_scan(p).n_points == 3
 
 
 def test_numpy_arrays_that_are_not_scans(tmp_path):

@@ -159,3 +159,42 @@ def test_missing_cells_filled_by_training_mean_or_nearest_cell():
     r, c = np.argwhere(hole.reshape(11, 11))[0]
     z = window.window(depth_image(faces[0]))
     assert nearest[r, c] in [z[r + dr, c + dc] for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1))]  # ties: any
+
+
+def test_a_damaged_model_file_is_refused_when_loaded_naming_the_file_and_the_array(tmp_path):
+    """A model.npz whose projection was cut to 100 rows crashed `evaluate --model` with NumPy's matmul ValueError, a
+    shorter mean with a broadcast one; one of NaNs gave rank-1 0 % and gallery entries scoring nan, no error. The
+    learnt arrays are checked when loaded: shapes against each other and the settings' depth window, finite."""
+    from facerec3d.errors import FaceRec3DError
+    from facerec3d.matching.base import Template
+
+    rng = np.random.default_rng(5)
+    X, Y = grid_xy()
+    window = DepthMapConfig(half_width_mm=10.0)  # 11 × 11 cells: d = 121
+    faces = [depth_to_scan(30 - (X**2 + Y**2) / 100 + rng.normal(scale=2.0) * X / 10 + rng.normal(), window.grid)
+             for _ in range(8)]
+    options = {"depth": asdict(window)}
+    for method in ("pca", "lda"):
+        matcher = make_matcher(method, options).fit(faces, list("aabbccdd"))
+        matcher.save(tmp_path / "good.npz")
+        np.testing.assert_array_equal(load_matcher(tmp_path / "good.npz").prepare(faces[0]), matcher.prepare(faces[0]))
+        arrays, attrs = matcher.state()
+        k = arrays["projection"].shape[1]
+        for change, reason in (({"projection": arrays["projection"][:100]}, f"'projection' of shape (100, {k}), not "
+                                                                          f"(121, {k})"),
+                               ({"mean": arrays["mean"][:60]}, "'mean' of shape (60,), not (121,)"),
+                               ({"scale": np.ones(k + 1)}, f"'scale' of shape ({k + 1},), not ({k},)"),
+                               ({name: np.full_like(a, np.nan) for name, a in arrays.items()},
+                                "'mean' holds NaN or infinite values"),
+                               ({"projection": np.where(np.eye(121, k) > 0, np.inf, arrays["projection"])},
+                                "'projection' holds NaN or infinite values"),
+                               ({"scale": np.zeros(k)}, "'scale' holds values of 0 or less"),
+                               ({"mean": arrays["mean"].astype(str)}, "'mean' holds <U32 values, not numbers")):
+            bad = tmp_path / "bad.npz"
+            Template(None, None, method, {**arrays, **change}, {"options": matcher.options(), "state": attrs}).save(bad)
+            with pytest.raises(FaceRec3DError) as e:
+                load_matcher(bad)
+            assert str(e.value).startswith(f"{bad}: not a usable {method} model ({reason}"), str(e.value)
+        Template(None, None, method, {"mean": arrays["mean"]}, {"options": matcher.options(), "state": {}}).save(bad)
+        with pytest.raises(FaceRec3DError, match=r"bad.npz: not a usable .* model \(no 'projection' array\)"):
+            load_matcher(bad)

@@ -12,13 +12,17 @@ cache, a folder the workers share); without an engine, everything runs in this p
 from __future__ import annotations
 
 import hashlib
+import math
+import numbers
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from os import PathLike
 from pathlib import Path
 
 from facerec3d.datasets.catalog import (Dataset, DatasetError, ScanRecord, manifest_record, open_dataset,
                                         scan_record)
 from facerec3d.datasets.protocols import split
+from facerec3d.errors import InputError
 from facerec3d.gallery.cascade import CascadeConfig
 from facerec3d.gallery.engine import Engine
 from facerec3d.gallery.store import AlreadyEnrolled, Entry, GalleryError, GalleryStore
@@ -58,12 +62,17 @@ def scan_records(data: Iterable[str | Path], subject: str | None = None,
                  gallery_only: bool = False) -> list[ScanRecord]:
     """The scans of DATA arguments: dataset folders and manifest CSVs (all their scans, or with `gallery_only` the
     gallery of their protocol), and scan files (subject from a FRGC or Bosphorus name, else `subject`, else
-    the manifest.csv of the file's folder or one above it that lists it, else the file's stem). Files in different
-    folders whose subjects would all be the same stem (`a/front_1.png`, `b/front_1.png`: two people made one) are
-    refused with a DatasetError that says how to name them."""
+    the manifest.csv of the file's folder or one above it that lists it, else the file's stem); ScanRecords among
+    them are kept as they are. Files in different folders whose subjects would all be the same stem
+    (`a/front_1.png`, `b/front_1.png`: two people made one) are refused with a DatasetError that says how to name
+    them."""
     out: list[ScanRecord] = []
     from_stem: dict[str, set[Path]] = {}
-    for item in map(Path, data):
+    for item in data:
+        if isinstance(item, ScanRecord):
+            out.append(item)
+            continue
+        item = Path(item)
         if (dataset := _dataset_of(item)) is not None:
             chosen = split(dataset, None).gallery if gallery_only else range(len(dataset))
             out += [dataset.records[i] for i in chosen]
@@ -142,12 +151,16 @@ def _enrol_one(record: ScanRecord, config: PreprocessConfig, matcher: Matcher, c
     return template, None, content
 
 
-def enroll_scans(store: GalleryStore, records: Sequence[ScanRecord], matcher: Matcher, *,
-                 config: PreprocessConfig = PreprocessConfig(), engine: Engine | None = None,
+def enroll_scans(store: GalleryStore, records: Sequence[ScanRecord | str | PathLike] | str | PathLike,
+                 matcher: Matcher, *, config: PreprocessConfig = PreprocessConfig(), engine: Engine | None = None,
                  cache: str | Path | None = None, intrinsics: str | Path | None = None,
                  on_result=None) -> EnrolReport:
     """Preprocess and enrol scans into the store, each in its own transaction as soon as it is ready; each scan is
     read, preprocessed and enrolled in one call on the `engine`'s workers.
+
+    `records` are ScanRecords (`scan_records`) or paths: scan files, dataset folders and manifest CSVs, whose
+    scans and subjects are found as `scan_records` finds them (as `facerec3d enroll DATA...` does); InputError for
+    anything else, before any work.
 
     The store must be new or made with these settings. Scans already in it (by path, or by content: a copy of
     an enrolled scan) are skipped, also when another enrolment running at the same time adds them first; a scan
@@ -156,6 +169,11 @@ def enroll_scans(store: GalleryStore, records: Sequence[ScanRecord], matcher: Ma
     failure reason). Depth frames are read with `intrinsics` (a JSON file) when given, else with the
     intrinsics.json found beside them.
     """
+    records = [records] if isinstance(records, (str, PathLike)) else list(records)
+    if bad := [r for r in records if not isinstance(r, (ScanRecord, str, PathLike))]:
+        raise InputError(f"enroll_scans takes scan records (scan_records) or paths of scans, dataset folders and "
+                         f"manifests, not {bad[0]!r:.60}")
+    records = scan_records(records)
     store.bind(config, matcher)
     report = EnrolReport()
     done = store.sources()
@@ -250,9 +268,13 @@ def verify_scan(store: GalleryStore, probe: str | Path, claim: str, *, threshold
     A depth frame is read with `intrinsics` (a JSON file) when given."""
     if not isinstance(claim, str) or not claim:  # entries(subject=None) would be every entry: anyone's claim
         raise GalleryError(f"{store.path}: a verification claims a subject (a non-empty text), not {claim!r}")
+    if threshold is not None and (isinstance(threshold, bool) or not isinstance(threshold, numbers.Real)
+                                  or not math.isfinite(threshold)):  # NaN accepted nothing, '1' failed in >=
+        raise InputError(f"a verification threshold is a finite number, not {threshold!r}")
     matcher = store.matcher()
     if threshold is None:
         threshold = gallery_threshold(store, matcher.name)
+    threshold = float(threshold)
     claimed = [e.id for e in store.entries(subject=claim)]
     if not claimed:
         raise GalleryError(f"{store.path}: subject {claim!r} is not enrolled")

@@ -56,7 +56,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facerec3d.errors import FaceRec3DError
+from facerec3d.errors import FaceRec3DError, InputError
 from facerec3d.matching.base import Matcher, Template
 from facerec3d.matching.checks import check_template
 from facerec3d.matching.registry import restore_state, stored_matcher
@@ -604,7 +604,17 @@ class GalleryStore:
     @_sqlite_errors
     def remove(self, ident: str | None = None, entry: int | None = None) -> int:
         """Delete the entries `removal` picks (subject `ident`'s, or else the scan `ident`, or else entry id `entry`);
-        returns how many (0 when none matches); GalleryError when `ident` is a scan id of several subjects."""
+        returns how many (0 when none matches); GalleryError when `ident` is a scan id of several subjects. InputError,
+        nothing deleted, for both `ident` and `entry` (as the command line: the entry may be another subject's) or
+        an entry id that is not a whole number (`entry="3"` matched nothing)."""
+        if ident is not None and entry is not None:
+            raise InputError(f"{self.path}: remove a subject or scan id ({ident!r}) or an entry id ({entry!r}), not "
+                             "both: the entry may be another subject's")
+        if entry is not None and (isinstance(entry, bool) or not isinstance(entry, (int, np.integer))):
+            raise InputError(f"{self.path}: an entry id is a whole number (the first column of gallery {self.path} "
+                             f"list), not {entry!r}")
+        if ident is not None and not isinstance(ident, str):
+            raise InputError(f"{self.path}: a subject or scan id is a text, not {ident!r}")
         with self._transaction():
             try:
                 ids = [e.id for e in removal(self.entries(), ident, entry)]

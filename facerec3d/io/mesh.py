@@ -184,6 +184,30 @@ def _obj_positions_only(data: bytes) -> bytes:
     return _OBJ_FACE.sub(lambda face: _OBJ_INDEX_TAIL.sub(b"", face.group(1)), data)
 
 
+def _check_off(path: str | Path, data: bytes) -> None:
+    """Refuse an OFF file whose counts line is not numbers, or that ends before the vertices and faces its counts
+    line promises, one a line (trimesh reads the lines there are: a file cut in its faces, or a counts line of
+    99999999999 faces over none, was a scan of its vertices). Lines are counted as trimesh reads them (its comment
+    stripping); nothing is allocated by the counts."""
+    from trimesh.util import comment_strip, decode_text
+
+    parts = re.split("(COFF|OFF)", comment_strip(decode_text(data)).strip(), maxsplit=1)
+    if len(parts) < 3:
+        return  # not an OFF file: trimesh says so
+    lines = (line for line in parts[2].splitlines() if line.strip())
+    counts = next(lines, "").split()[:2]
+    if len(counts) < 2:
+        return  # no counts line: trimesh says so
+    if not all(c.isascii() and c.isdigit() for c in counts):
+        raise ScanFormatError(path, f"bad OFF header: the vertex and face counts are {' '.join(counts)[:40]!r}, not "
+                                    "numbers")
+    vertices, faces = map(int, counts)
+    held = sum(1 for _ in lines)
+    if held < vertices + faces:
+        raise ScanFormatError(path, f"truncated OFF: header promises {vertices} vertices and {faces} faces (a line "
+                                    f"each), the file holds only {held} lines after it")
+
+
 def read_mesh(path: str | Path) -> FaceScan:
     """An OBJ, OFF or STL mesh or point cloud: its vertices, with vertex colours when the file has them.
 
@@ -206,6 +230,8 @@ def read_mesh(path: str | Path) -> FaceScan:
     if suffix == "obj":
         data = _obj_positions_only(data)
     with library_errors(path, f"{suffix.upper()} file"):
+        if suffix == "off":
+            _check_off(path, data)
         geometry = trimesh.load(io.BytesIO(data), file_type=suffix, process=False, **options)
         if isinstance(geometry, trimesh.Scene):
             parts = geometry.dump()

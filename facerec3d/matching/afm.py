@@ -182,7 +182,7 @@ class AFMMatcher(Matcher[Template]):
 
     def set_state(self, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any]) -> None:
         if arrays:
-            self.residue_ = ResidueModel.from_state(arrays)
+            self.residue_ = ResidueModel.from_state(arrays, 3 * len(self._region_order()))  # x, y, z coefficients
 
     # ------------------------------------------------------------------------------------------- scoring
     def _gallery(self, templates: Sequence[Template]) -> tuple[np.ndarray, np.ndarray]:

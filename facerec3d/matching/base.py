@@ -149,6 +149,31 @@ def rank(scores: np.ndarray, tiebreak: np.ndarray | None = None, tolerance: floa
     return order[np.lexsort((-np.asarray(tiebreak, dtype=np.float64)[order], group))]
 
 
+def learnt_arrays(arrays: Mapping[str, Any], shapes: Mapping[str, tuple[int | str, ...]],
+                  **sizes: int) -> list[np.ndarray]:
+    """The learnt arrays `shapes` names, in that order, as float64, checked as `set_state` takes them back from a
+    model file or a gallery: each there, of numbers, of its shape (a size given as a letter is the same wherever it
+    appears, and equals `sizes[letter]` when given: what the method's settings imply), not empty, and finite.
+    ValueError in one line naming the array otherwise (`restore_state` names the file): a damaged model was
+    accepted and crashed later, or scored everything NaN."""
+    out = []
+    for name, shape in shapes.items():
+        if name not in arrays:
+            raise ValueError(f"no {name!r} array")
+        a = np.asarray(arrays[name])
+        if a.dtype.kind not in "iuf":
+            raise ValueError(f"{name!r} holds {a.dtype} values, not numbers")
+        wanted = tuple(sizes.setdefault(n, a.shape[i]) if isinstance(n, str) and i < a.ndim else n
+                       for i, n in enumerate(shape))
+        if a.shape != wanted or not a.size:
+            shown = ", ".join(str(sizes.get(n, n)) for n in shape) + ("," if len(shape) == 1 else "")
+            raise ValueError(f"{name!r} of shape {a.shape}, not ({shown})")
+        if not np.isfinite(a).all():
+            raise ValueError(f"{name!r} holds NaN or infinite values")
+        out.append(a.astype(np.float64))
+    return out
+
+
 def with_added(added: Mapping[str, Any], stored: Mapping[str, Any]) -> dict[str, Any]:
     """Stored options with the fields `added` names that they lack; a nested table stored is completed field by
     field (`Matcher.added_options`)."""
@@ -242,7 +267,7 @@ class Matcher(ABC, Generic[P]):
         return {}, {}
 
     def set_state(self, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any]) -> None:
-        """Take back what `state()` returned."""
+        """Take back what `state()` returned, checked (`learnt_arrays`): ValueError, one line, for a damaged one."""
 
     def save(self, path: str | PathLike) -> None:
         """Write the method name, its settings and what it learnt to an .npz file (no pickle)."""

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from facerec3d.errors import FaceRec3DError, InputError
-from facerec3d.matching.base import Matcher, Template, check_face, check_training
+from facerec3d.matching.base import Matcher, Template, check_face, check_training, learnt_arrays
 from facerec3d.matching.depthmap import fill_nearest
 from facerec3d.models import onnx_session
 from facerec3d.preprocess.resample import ResampleConfig, depth_map
@@ -262,10 +262,10 @@ class EmbeddingMatcher(Matcher[np.ndarray]):
         return ({}, {}) if self.wccn_ is None else ({"wccn_mean": self.wccn_[0], "wccn_matrix": self.wccn_[1]}, {})
 
     def set_state(self, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any]) -> None:
-        if "wccn_matrix" in arrays:
-            mean, W = np.asarray(arrays["wccn_mean"], np.float64), np.asarray(arrays["wccn_matrix"], np.float64)
-            if mean.ndim != 1 or W.shape != (len(mean), len(mean)):
-                raise ValueError(f"embedding adaptation of shapes {mean.shape} and {W.shape}, not (d,) and (d, d)")
+        if arrays:
+            dim = self.model.card.get("embedding_dim")  # the network's, when its card says
+            sizes = {"d": dim} if isinstance(dim, int) and not isinstance(dim, bool) else {}
+            mean, W = learnt_arrays(arrays, {"wccn_mean": ("d",), "wccn_matrix": ("d", "d")}, **sizes)
             self.wccn_ = mean, W
 
     def network_embed(self, scans: Sequence[FaceScan]) -> np.ndarray:

@@ -30,6 +30,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from facerec3d.facemodel import load_model
+from facerec3d.matching.base import learnt_arrays
 from facerec3d.preprocess.resample import ResampleConfig
 
 
@@ -131,9 +132,11 @@ class ResidueModel:
         return {"residue_components": self.components, "residue_eigenvalues": self.eigenvalues}, {}
 
     @staticmethod
-    def from_state(arrays) -> "ResidueModel":
-        return ResidueModel(np.asarray(arrays["residue_components"], dtype=np.float64),
-                            np.asarray(arrays["residue_eigenvalues"], dtype=np.float64))
+    def from_state(arrays, features: int) -> "ResidueModel":
+        """The model `state()` gave, for vectors of `features` values (ValueError naming the array when its arrays
+        are not of such a model: `base.learnt_arrays`)."""
+        return ResidueModel(*learnt_arrays(arrays, {"residue_components": ("d", "p"), "residue_eigenvalues": ("p",)},
+                                           d=features))
 
     def errors(self, probe: np.ndarray, probe_valid: np.ndarray, gallery: np.ndarray,
                gallery_valid: np.ndarray) -> np.ndarray:

@@ -151,8 +151,11 @@ class FusionMatcher(GalleryNormalised, Matcher[list]):
     def set_state(self, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any]) -> None:
         for k, m in enumerate(self.members):
             prefix = f"{k}__"
-            m.set_state({n[len(prefix):]: a for n, a in arrays.items() if n.startswith(prefix)},
-                        attrs["members"][k])
+            try:
+                m.set_state({n[len(prefix):]: a for n, a in arrays.items() if n.startswith(prefix)},
+                            attrs["members"][k])
+            except ValueError as e:
+                raise ValueError(f"member {m.name!r}: {e}") from None
 
     def enroll(self, scan: FaceScan) -> Template:
         return pack([m.enroll(scan) for m in self.members], self.name)

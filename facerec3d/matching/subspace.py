@@ -33,7 +33,8 @@ import numpy as np
 import scipy.linalg
 
 from facerec3d.errors import InputError
-from facerec3d.matching.base import Matcher, Template, check_face, check_training, vector_similarity
+from facerec3d.matching.base import (Matcher, Template, check_face, check_training, learnt_arrays,
+                                    vector_similarity)
 from facerec3d.matching.depthmap import DepthMapConfig, depth_window, fill_nearest
 from facerec3d.scan import FaceScan
 
@@ -173,8 +174,12 @@ class _SubspaceMatcher(Matcher[np.ndarray]):
 
     def set_state(self, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any]) -> None:
         if arrays:
-            self.mean_, self.projection_, self.scale_ = (np.asarray(arrays[k], dtype=np.float64)
-                                                      for k in ("mean", "projection", "scale"))
+            rows, cols = self.config.depth.shape
+            mean, projection, scale = learnt_arrays(arrays, {"mean": ("d",), "projection": ("d", "k"),
+                                                             "scale": ("k",)}, d=rows * cols)
+            if not (scale > 0).all():
+                raise ValueError("'scale' holds values of 0 or less (standard deviations)")
+            self.mean_, self.projection_, self.scale_ = mean, np.ascontiguousarray(projection), scale
 
     def enroll(self, scan: FaceScan) -> Template:
         check_face(scan)
