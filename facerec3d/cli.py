@@ -1367,7 +1367,7 @@ def metrics(scores, fmt, higher_is_better, out, overwrite, bootstrap, seed):
 def fuse(scores, out, fmt, normalisation, rule, weights, top, overwrite):
     """Fuse several systems' score files (SCORES, two or more) into one, as the `fusion` method fuses its members
     (chapter §8.10): each probe's scores normalised over the gallery, then combined; evaluate it with `metrics`."""
-    from facerec3d.errors import InputError
+    from facerec3d.errors import InputError, SettingsError
     from facerec3d.evaluation.scorefile import fuse_score_files, write_scores
 
     try:
@@ -1376,7 +1376,10 @@ def fuse(scores, out, fmt, normalisation, rule, weights, top, overwrite):
         raise InputError(f"--weights {weights!r}: not comma-separated numbers") from None
     if Path(out).exists() and not overwrite:
         raise InputError(f"{out}: exists; give --overwrite to replace it")
-    m, left_out = fuse_score_files(list(scores), fmt, rule, normalisation, w, top)
+    try:
+        m, left_out = fuse_score_files(list(scores), fmt, rule, normalisation, w, top)
+    except SettingsError as e:  # a weight or --top out of range: named as the option
+        raise InputError(f"--{e.field}: {e.reason}") from None
     partial = Path(out).with_name(Path(out).name + ".partial")
     n = write_scores(partial, m.S, m.probe_ids, m.probe_labels, m.gallery_ids)
     partial.replace(out)

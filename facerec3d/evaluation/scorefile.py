@@ -30,7 +30,7 @@ from typing import NamedTuple
 import numpy as np
 
 from facerec3d.datasets.catalog import one_field
-from facerec3d.errors import InputError
+from facerec3d.errors import InputError, SettingsError
 
 
 class ScoreRows(NamedTuple):
@@ -233,15 +233,23 @@ def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str =
     gallery templates it was compared with, then combined by `rule` (InputError when the files share none). Probes
     are matched by label, templates by (subject, label). Returns the fused matrix and the number of comparisons left out because some file lacks them
     (a comparison is fused only where every file has it; a score of −inf, a match not found, counts as that
-    probe's worst). Raises InputError naming the file when the files disagree on a probe's subject."""
-    from facerec3d.matching.normalisation import check_fusion, fuse
+    probe's worst). Raises InputError naming the file when the files disagree on a probe's subject, and the fusion
+    method's errors for its settings (SettingsError naming `weights` or `top` out of range, InputError otherwise;
+    weights with a rule that ignores them too)."""
+    from facerec3d.matching.fusion import FusionConfig
+    from facerec3d.matching.normalisation import fuse
 
     if len(paths) < 2:
         raise InputError("fusion needs at least two score files")
-    try:
-        check_fusion(rule, normalisation, weights, len(paths))
+    try:  # the checks of the fusion method's settings (ranges: SettingsError naming the field)
+        FusionConfig(members=tuple(map(str, paths)), normalisation=normalisation, rule=rule, weights=tuple(weights),
+                     top=top)
+    except SettingsError:
+        raise
     except ValueError as e:
         raise InputError(str(e)) from None
+    if weights and rule != "weighted-sum":
+        raise InputError(f"weights are for the weighted-sum rule: {rule} does not use them")
     mats = [read_score_matrix(p, fmt) for p in paths]
     first = mats[0]
     probes = {str(label): i for i, label in enumerate(first.probe_labels)}
