@@ -424,3 +424,25 @@ def test_fuse_refuses_the_settings_the_fusion_method_refuses(tmp_path, args, rea
                                        "--out", str(tmp_path / "f.txt"), *args])
     assert result.exit_code == 2 and result.output.startswith("error: ") and reason in result.output
     assert result.output.count("\n") == 1 and not (tmp_path / "f.txt").exists()
+
+
+def test_csv_score_file_with_an_empty_id_is_named_by_line(tmp_path):
+    """A bob CSV score file with an empty (or missing) subject or probe id: an InputError naming the file, line and
+    column, from `metrics` and `fuse` alike (was: `ValueError: gallery id is empty` from writing scores.txt)."""
+    from click.testing import CliRunner
+
+    from facerec3d.cli import main
+
+    header = "bio_ref_subject_id,probe_subject_id,probe_template_id,score\na,a,p1,1\nb,a,p1,0\n"
+    (tmp_path / "c7.csv").write_text(header + ",a,p2,1\n")
+    (tmp_path / "c8.csv").write_text(header + "b,a\n")
+    with pytest.raises(InputError, match=r"c7\.csv:4: the bio_ref_subject_id field is empty"):
+        read_score_matrix(tmp_path / "c7.csv", "csv")
+    with pytest.raises(InputError, match=r"c8\.csv:4: the probe_template_id field is empty"):
+        read_score_matrix(tmp_path / "c8.csv", "csv")
+    for args in (["metrics", str(tmp_path / "c7.csv"), "--format", "csv", "--out", str(tmp_path / "m")],
+                 ["fuse", str(tmp_path / "c7.csv"), str(tmp_path / "c7.csv"), "--format", "csv",
+                  "--out", str(tmp_path / "f.txt")]):
+        result = CliRunner().invoke(main, args)
+        assert result.exit_code == 2 and result.output == f"error: {tmp_path / 'c7.csv'}:4: the bio_ref_subject_id " \
+                                                          "field is empty\n"

@@ -157,7 +157,11 @@ def _csv_columns(path: str | Path) -> tuple[np.ndarray, np.ndarray | None, np.nd
                        if c is None and role != "model_label"] + ([] if "score" in header else ["score"])
             if missing:
                 raise InputError(f"{path}: not a bob CSV score file: no column for {', '.join(missing)}")
-            rows = list(reader)
+            rows = []
+            for r in reader:  # an empty id would be a subject or probe called "" (and no field of bob4)
+                if empty := next((c for role, c in chosen.items() if role != "model_label" and not r[c]), None):
+                    raise InputError(f"{path}:{reader.line_num}: the {empty} field is empty")
+                rows.append(r)
         except csv.Error as e:  # a field over the csv module's limit, a NUL byte
             raise InputError(f"{path}: not a readable CSV file ({e})") from None
     try:
