@@ -209,7 +209,7 @@ def _clear_dataset(out: Path, overwrite: bool) -> None:
         raise InputError(f"{out}: holds a dataset already ({manifest.name}); give --overwrite to replace it")
     root = out.resolve()
     try:
-        with open(manifest, newline="", encoding="utf-8") as f:
+        with open(manifest, newline="", encoding="utf-8-sig") as f:
             listed = [row.get("path") or "" for row in csv.DictReader(f)]
     except (OSError, UnicodeDecodeError, csv.Error) as e:
         raise InputError(f"{manifest}: cannot read the old dataset's manifest ({e})") from None

@@ -112,9 +112,10 @@ def _read_columns(path: str | Path, n: int) -> list[np.ndarray]:
 
 @contextmanager
 def _text(path: str | Path, newline: str | None = None):
-    """A score file opened as UTF-8 text; a byte that is not UTF-8 is one InputError naming the file."""
+    """A score file opened as UTF-8 text, a byte-order mark (Excel's "CSV UTF-8") skipped; a byte that is not UTF-8 is
+    one InputError naming the file."""
     try:
-        with open(path, encoding="utf-8", newline=newline) as f:
+        with open(path, encoding="utf-8-sig", newline=newline) as f:
             yield f
     except UnicodeDecodeError as e:
         raise InputError(f"{path}: not UTF-8 text (a byte {e.object[e.start:e.start + 1]!r}): save it as UTF-8") \
