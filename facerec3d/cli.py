@@ -313,11 +313,17 @@ def preprocess(inputs, outdir, overwrite, config_file, fmt, jobs, intrinsics):
 
 def _preprocess_outputs(out: Path) -> list[str]:
     """The names of the files an earlier `preprocess` wrote into OUT: landmarks.csv and the faces it lists."""
+    from facerec3d.errors import InputError
+
     listing = out / "landmarks.csv"
     if not listing.is_file():
         return []
-    with open(listing, newline="", errors="replace") as f:
-        faces = [Path(row["output"]).name for row in csv.DictReader(f) if row.get("output")]
+    try:
+        with open(listing, newline="", errors="replace") as f:
+            faces = [Path(row["output"]).name for row in csv.DictReader(f) if row.get("output")]
+    except csv.Error as e:  # a field over the csv module's limit, a NUL byte: not the listing preprocess writes
+        raise InputError(f"{listing}: not a readable CSV file ({e}): not a listing preprocess wrote; remove it or "
+                         "choose another OUT") from None
     return ["landmarks.csv", *(name for name in faces if Path(name).suffix in (".npz", ".ply"))]
 
 
