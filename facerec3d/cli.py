@@ -1417,6 +1417,8 @@ def demo(subjects, scans, methods, out, jobs, seed):
 
     out = Path(out)
     names = [m.strip() for m in methods.split(",") if m.strip()]
+    if not names:  # before any data is made: nothing would use it
+        raise click.BadParameter(f"{methods!r} names no method (e.g. icp,region-icp,lda)", param_hint="--methods")
     learnt = {name for name in names if make_matcher(name).needs_training}
     sets = {"data": DatasetConfig(subjects=subjects, scans=scans, seed=seed)}
     if learnt:

@@ -198,3 +198,13 @@ def test_train_given_to_a_method_that_learns_nothing_is_a_warning_not_silence(le
                                   "--jobs", "1", "--cache", cache])
     assert r.exit_code == 0 and r.stderr.startswith(f"warning: method 'fusion' learns nothing with the settings of "
                                                     f"{settings}: --train {train} not used\n"), r.output
+
+
+@pytest.mark.parametrize("methods", ["", " , "])
+def test_demo_refuses_no_methods_before_any_work(tmp_path, methods):
+    """`demo --methods ""` synthesised the data first, then failed with "no run folders to compare"."""
+    out = tmp_path / "demo"
+    r = CliRunner().invoke(main, ["demo", "--subjects", "2", "--scans", "1", "--methods", methods, "--out", str(out)])
+    assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
+    assert r.output.startswith("error: Invalid value for --methods: ") and "names no method" in r.output
+    assert not out.exists()
