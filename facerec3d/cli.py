@@ -369,6 +369,22 @@ def _cascade_options(fn, screens: tuple[str, ...] = ("depth", "embedding")):
                         "the learned embedding) and run full ICP on the shortlist only (faces off it score -inf).")(fn)
 
 
+def _given(*names) -> list[str]:
+    """The options NAMES of the command that were given (not left at their defaults), as spelt (`--fmr`)."""
+    from click.core import ParameterSource
+
+    ctx = click.get_current_context()
+    opts = {p.name: p.opts[0] for p in ctx.command.params}
+    return [opts[n] for n in names if ctx.get_parameter_source(n) not in (None, ParameterSource.DEFAULT)]
+
+
+def _check_cascade(cascade: bool) -> None:
+    """Refuse --shortlist and --screen without --cascade (they would be ignored: the whole gallery is matched)."""
+    if not cascade and (given := _given("shortlist", "screen")):
+        raise click.UsageError(f"{', '.join(given)} works with --cascade only (without it the whole gallery is "
+                               "matched, and it would be ignored).")
+
+
 def _cascade_config(cascade: bool, shortlist: int, screen: str = "depth"):
     from facerec3d.gallery.cascade import CascadeConfig
 
@@ -623,6 +639,7 @@ def evaluate(data, method, method_config, train, model, out, overwrite, protocol
     from facerec3d.evaluation.run import evaluate as run
     from facerec3d.preprocess import PreprocessConfig
 
+    _check_cascade(cascade)
     if model and click.get_current_context().get_parameter_source("method") is ParameterSource.COMMANDLINE:
         raise InputError(f"{model}: a saved model brings its own method: give --model or --method, not both")
     if train:
@@ -759,6 +776,7 @@ def identify(probe, gallery, k, config_file, cache, intrinsics, cascade, shortli
              api_key, preprocess_locally):
     """The k gallery entries most like scan PROBE, best first (rank, subject, scan, score)."""
     _local_only(server, gallery, "config_file", "cache", "jobs", "scheduler")
+    _check_cascade(cascade)
     if server:
         with _edge(server, preprocess_locally), _client(server, api_key) as client:
             answer = client.identify(probe, k, cascade, shortlist, preprocess_locally=preprocess_locally,
@@ -982,6 +1000,9 @@ def gallery_calibrate(store, data, fmr, eer, subject, cache, intrinsics, jobs, s
     from facerec3d.gallery.service import scan_records
     from facerec3d.gallery.store import GalleryStore
 
+    if eer and _given("fmr"):
+        raise click.UsageError("--fmr cannot be used with --eer (the threshold is at the equal error rate, not at a "
+                               "false-match rate).")
     if (client := _remote_gallery()) is not None:
         _service_side_only("cache", "jobs", "scheduler")
         if not data:

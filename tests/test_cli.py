@@ -208,3 +208,20 @@ def test_demo_refuses_no_methods_before_any_work(tmp_path, methods):
     assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
     assert r.output.startswith("error: Invalid value for --methods: ") and "names no method" in r.output
     assert not out.exists()
+
+
+@pytest.mark.parametrize("args, refused", [
+    (["gallery", "{g}", "calibrate", "--eer", "--fmr", "0.1"], "--fmr cannot be used with --eer"),
+    (["identify", "{p}", "--gallery", "{g}", "--shortlist", "5"], "--shortlist works with --cascade only"),
+    (["identify", "{p}", "--gallery", "{g}", "--screen", "embedding"], "--screen works with --cascade only"),
+    (["evaluate", "{p}", "--out", "{o}", "--shortlist", "5"], "--shortlist works with --cascade only"),
+])
+def test_options_that_would_be_ignored_are_refused(tmp_path, args, refused):
+    """`gallery G calibrate --eer --fmr 0.1` ignored --fmr, `identify --shortlist 5` without --cascade the
+    shortlist: one line, before any work (the gallery is not even opened)."""
+    (tmp_path / "p.abs").write_text("")
+    names = {"g": tmp_path / "g.sqlite", "p": tmp_path / "p.abs", "o": tmp_path / "out"}
+    r = CliRunner().invoke(main, [a.format(**names) for a in args])
+    assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
+    assert r.output.startswith(f"error: {refused}")
+    assert not names["g"].exists() and not names["o"].exists()
