@@ -170,15 +170,18 @@ def synth(out, subjects, scans, fmt, seed, first_subject, expressions, expressio
 
     from facerec3d.datasets.synthetic import (EXPRESSIONS, DatasetConfig, identity_profile, sensor_profile,
                                               write_dataset)
-
-    _clear_dataset(Path(out), overwrite)
+    from facerec3d.io.common import MAX_POINTS
 
     chosen = tuple(e.strip() for e in expressions.split(",") if e.strip()) if expressions else EXPRESSIONS
     scanner = sensor_profile(sensor)
     if rows is not None or cols is not None:  # overrides; the focal length keeps the field of view
         cols = scanner.cols if cols is None else cols
         rows = scanner.rows if rows is None else rows
+        if rows * cols > MAX_POINTS:  # before any work: scans that every reader here would refuse
+            raise click.UsageError(f"--rows {rows} --cols {cols}: {rows * cols} pixels a scan, more than the "
+                                   f"{MAX_POINTS} facerec3d reads")
         scanner = replace(scanner, rows=rows, cols=cols, focal_px=scanner.focal_px * cols / scanner.cols)
+    _clear_dataset(Path(out), overwrite)
     cfg = DatasetConfig(subjects=subjects, scans=scans, seed=seed, first_subject=first_subject, expressions=chosen,
                         expression_strength=tuple(expression_strength), scanner=scanner,
                         identity=identity_profile(identities))

@@ -225,3 +225,19 @@ def test_options_that_would_be_ignored_are_refused(tmp_path, args, refused):
     assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
     assert r.output.startswith(f"error: {refused}")
     assert not names["g"].exists() and not names["o"].exists()
+
+
+@pytest.mark.parametrize("size, fmt", [(("100000", "100000"), "abs"), (("3000", "3000"), "png"),
+                                       (("2001", "2000"), "bnt")])
+def test_synth_refuses_scans_its_readers_would_refuse(tmp_path, size, fmt):
+    """`synth --rows 100000 --cols 100000` was a MemoryError traceback, `--format png --rows 3000 --cols 3000` wrote
+    frames that `info` refuses (over MAX_POINTS pixels): one line, before any work (OUT not made)."""
+    from facerec3d.io.common import MAX_POINTS
+
+    rows, cols = size
+    r = CliRunner().invoke(main, ["synth", str(tmp_path / "x"), "--subjects", "1", "--scans", "1", "--rows", rows,
+                                  "--cols", cols, "--format", fmt])
+    assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
+    assert r.output.startswith(f"error: --rows {rows} --cols {cols}: {int(rows) * int(cols)} pixels a scan, more than "
+                               f"the {MAX_POINTS} facerec3d reads")
+    assert not (tmp_path / "x").exists()
