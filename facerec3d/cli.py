@@ -238,6 +238,11 @@ def view(file, output, with_face):
     check_image_path(output)  # before the work: a format or folder that cannot be written says so at once
     with compilation_notice(lambda line: click.echo(line, err=True)):  # a cold Numba cache: ~30 s, said first
         scan = gridify(load_scan(file))
+        if min(scan.grid_shape) < 2:  # the shading takes depth differences along rows and columns
+            from facerec3d.errors import InputError
+
+            raise InputError(f"{file}: too thin to draw (a grid of {scan.grid_shape[0]}×{scan.grid_shape[1]} points; "
+                             "the shaded drawing needs at least 2×2)")
         panels = [(f"{Path(file).name} (raw)", scan)]
         if with_face:
             from facerec3d.errors import FailureToAcquire

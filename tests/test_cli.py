@@ -241,3 +241,18 @@ def test_synth_refuses_scans_its_readers_would_refuse(tmp_path, size, fmt):
     assert r.output.startswith(f"error: --rows {rows} --cols {cols}: {int(rows) * int(cols)} pixels a scan, more than "
                                f"the {MAX_POINTS} facerec3d reads")
     assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("shape", [(1, 500), (500, 1), "two points"])
+def test_view_refuses_a_scan_too_thin_to_draw(tmp_path, shape):
+    """`view --raw` of a 1×500 or 500×1 depth map, or of two points, was a ValueError from np.gradient ("Shape of
+    array too small"): one line naming the file."""
+    import numpy as np
+
+    scan = tmp_path / "thin.npy"
+    np.save(scan, np.array([[0.0, 0.0, -1000.0], [1.0, 1.0, -1000.0]]) if shape == "two points"
+            else np.full(shape, -1000.0))
+    r = CliRunner().invoke(main, ["view", "--raw", str(scan), "-o", str(tmp_path / "v.png")])
+    assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
+    assert r.output.startswith(f"error: {scan}: too thin to draw (a grid of ")
+    assert not (tmp_path / "v.png").exists()
