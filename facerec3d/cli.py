@@ -170,15 +170,18 @@ def synth(out, subjects, scans, fmt, seed, first_subject, expressions, expressio
 
     from facerec3d.datasets.synthetic import (EXPRESSIONS, DatasetConfig, identity_profile, sensor_profile,
                                               write_dataset)
-
-    _clear_dataset(Path(out), overwrite)
+    from facerec3d.io.common import MAX_POINTS
 
     chosen = tuple(e.strip() for e in expressions.split(",") if e.strip()) if expressions else EXPRESSIONS
     scanner = sensor_profile(sensor)
     if rows is not None or cols is not None:  # overrides; the focal length keeps the field of view
         cols = scanner.cols if cols is None else cols
         rows = scanner.rows if rows is None else rows
+        if rows * cols > MAX_POINTS:  # before any work: scans that every reader here would refuse
+            raise click.UsageError(f"--rows {rows} --cols {cols}: {rows * cols} pixels a scan, more than the "
+                                   f"{MAX_POINTS} facerec3d reads")
         scanner = replace(scanner, rows=rows, cols=cols, focal_px=scanner.focal_px * cols / scanner.cols)
+    _clear_dataset(Path(out), overwrite)
     cfg = DatasetConfig(subjects=subjects, scans=scans, seed=seed, first_subject=first_subject, expressions=chosen,
                         expression_strength=tuple(expression_strength), scanner=scanner,
                         identity=identity_profile(identities))
@@ -209,7 +212,7 @@ def _clear_dataset(out: Path, overwrite: bool) -> None:
         raise InputError(f"{out}: holds a dataset already ({manifest.name}); give --overwrite to replace it")
     root = out.resolve()
     try:
-        with open(manifest, newline="", encoding="utf-8") as f:
+        with open(manifest, newline="", encoding="utf-8-sig") as f:
             listed = [row.get("path") or "" for row in csv.DictReader(f)]
     except (OSError, UnicodeDecodeError, csv.Error) as e:
         raise InputError(f"{manifest}: cannot read the old dataset's manifest ({e})") from None
@@ -235,6 +238,11 @@ def view(file, output, with_face):
     check_image_path(output)  # before the work: a format or folder that cannot be written says so at once
     with compilation_notice(lambda line: click.echo(line, err=True)):  # a cold Numba cache: ~30 s, said first
         scan = gridify(load_scan(file))
+        if min(scan.grid_shape) < 2:  # the shading takes depth differences along rows and columns
+            from facerec3d.errors import InputError
+
+            raise InputError(f"{file}: too thin to draw (a grid of {scan.grid_shape[0]}×{scan.grid_shape[1]} points; "
+                             "the shaded drawing needs at least 2×2)")
         panels = [(f"{Path(file).name} (raw)", scan)]
         if with_face:
             from facerec3d.errors import FailureToAcquire
@@ -313,11 +321,17 @@ def preprocess(inputs, outdir, overwrite, config_file, fmt, jobs, intrinsics):
 
 def _preprocess_outputs(out: Path) -> list[str]:
     """The names of the files an earlier `preprocess` wrote into OUT: landmarks.csv and the faces it lists."""
+    from facerec3d.errors import InputError
+
     listing = out / "landmarks.csv"
     if not listing.is_file():
         return []
-    with open(listing, newline="", errors="replace") as f:
-        faces = [Path(row["output"]).name for row in csv.DictReader(f) if row.get("output")]
+    try:
+        with open(listing, newline="", errors="replace") as f:
+            faces = [Path(row["output"]).name for row in csv.DictReader(f) if row.get("output")]
+    except csv.Error as e:  # a field over the csv module's limit, a NUL byte: not the listing preprocess writes
+        raise InputError(f"{listing}: not a readable CSV file ({e}): not a listing preprocess wrote; remove it or "
+                         "choose another OUT") from None
     return ["landmarks.csv", *(name for name in faces if Path(name).suffix in (".npz", ".ply"))]
 
 
@@ -361,6 +375,22 @@ def _cascade_options(fn, screens: tuple[str, ...] = ("depth", "embedding")):
                            + (", or keypoint matching §8.10.2" if "keypoints" in screens else "") + ").")(fn)
     return click.option("--cascade", is_flag=True, help="ICP only: screen the gallery cheaply (a depth descriptor or "
                         "the learned embedding) and run full ICP on the shortlist only (faces off it score -inf).")(fn)
+
+
+def _given(*names) -> list[str]:
+    """The options NAMES of the command that were given (not left at their defaults), as spelt (`--fmr`)."""
+    from click.core import ParameterSource
+
+    ctx = click.get_current_context()
+    opts = {p.name: p.opts[0] for p in ctx.command.params}
+    return [opts[n] for n in names if ctx.get_parameter_source(n) not in (None, ParameterSource.DEFAULT)]
+
+
+def _check_cascade(cascade: bool) -> None:
+    """Refuse --shortlist and --screen without --cascade (they would be ignored: the whole gallery is matched)."""
+    if not cascade and (given := _given("shortlist", "screen")):
+        raise click.UsageError(f"{', '.join(given)} works with --cascade only (without it the whole gallery is "
+                               "matched, and it would be ignored).")
 
 
 def _cascade_config(cascade: bool, shortlist: int, screen: str = "depth"):
@@ -618,6 +648,7 @@ def evaluate(data, method, method_config, train, model, out, overwrite, protocol
     from facerec3d.evaluation.run import evaluate as run
     from facerec3d.preprocess import PreprocessConfig
 
+    _check_cascade(cascade)
     if model and click.get_current_context().get_parameter_source("method") is ParameterSource.COMMANDLINE:
         raise InputError(f"{model}: a saved model brings its own method: give --model or --method, not both")
     if train:
@@ -754,6 +785,7 @@ def identify(probe, gallery, k, config_file, cache, intrinsics, cascade, shortli
              api_key, preprocess_locally):
     """The k gallery entries most like scan PROBE, best first (rank, subject, scan, score)."""
     _local_only(server, gallery, "config_file", "cache", "jobs", "scheduler")
+    _check_cascade(cascade)
     if server:
         with _edge(server, preprocess_locally), _client(server, api_key) as client:
             answer = client.identify(probe, k, cascade, shortlist, preprocess_locally=preprocess_locally,
@@ -977,6 +1009,9 @@ def gallery_calibrate(store, data, fmr, eer, subject, cache, intrinsics, jobs, s
     from facerec3d.gallery.service import scan_records
     from facerec3d.gallery.store import GalleryStore
 
+    if eer and _given("fmr"):
+        raise click.UsageError("--fmr cannot be used with --eer (the threshold is at the equal error rate, not at a "
+                               "false-match rate).")
     if (client := _remote_gallery()) is not None:
         _service_side_only("cache", "jobs", "scheduler")
         if not data:
@@ -1374,7 +1409,7 @@ def metrics(scores, fmt, higher_is_better, out, overwrite, bootstrap, seed):
 def fuse(scores, out, fmt, normalisation, rule, weights, top, overwrite):
     """Fuse several systems' score files (SCORES, two or more) into one, as the `fusion` method fuses its members
     (chapter §8.10): each probe's scores normalised over the gallery, then combined; evaluate it with `metrics`."""
-    from facerec3d.errors import InputError
+    from facerec3d.errors import InputError, SettingsError
     from facerec3d.evaluation.scorefile import fuse_score_files, write_scores
 
     try:
@@ -1383,7 +1418,10 @@ def fuse(scores, out, fmt, normalisation, rule, weights, top, overwrite):
         raise InputError(f"--weights {weights!r}: not comma-separated numbers") from None
     if Path(out).exists() and not overwrite:
         raise InputError(f"{out}: exists; give --overwrite to replace it")
-    m, left_out = fuse_score_files(list(scores), fmt, rule, normalisation, w, top)
+    try:
+        m, left_out = fuse_score_files(list(scores), fmt, rule, normalisation, w, top)
+    except SettingsError as e:  # a weight or --top out of range: named as the option
+        raise InputError(f"--{e.field}: {e.reason}") from None
     partial = Path(out).with_name(Path(out).name + ".partial")
     n = write_scores(partial, m.S, m.probe_ids, m.probe_labels, m.gallery_ids)
     partial.replace(out)
@@ -1415,6 +1453,8 @@ def demo(subjects, scans, methods, out, jobs, seed):
 
     out = Path(out)
     names = [m.strip() for m in methods.split(",") if m.strip()]
+    if not names:  # before any data is made: nothing would use it
+        raise click.BadParameter(f"{methods!r} names no method (e.g. icp,region-icp,lda)", param_hint="--methods")
     learnt = {name for name in names if make_matcher(name).needs_training}
     sets = {"data": DatasetConfig(subjects=subjects, scans=scans, seed=seed)}
     if learnt:

@@ -216,3 +216,61 @@ def test_train_given_to_a_method_that_learns_nothing_is_a_warning_not_silence(le
                                   "--jobs", "1", "--cache", cache])
     assert r.exit_code == 0 and r.stderr.startswith(f"warning: method 'fusion' learns nothing with the settings of "
                                                     f"{settings}: --train {train} not used\n"), r.output
+
+
+@pytest.mark.parametrize("methods", ["", " , "])
+def test_demo_refuses_no_methods_before_any_work(tmp_path, methods):
+    """`demo --methods ""` synthesised the data first, then failed with "no run folders to compare"."""
+    out = tmp_path / "demo"
+    r = CliRunner().invoke(main, ["demo", "--subjects", "2", "--scans", "1", "--methods", methods, "--out", str(out)])
+    assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
+    assert r.output.startswith("error: Invalid value for --methods: ") and "names no method" in r.output
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("args, refused", [
+    (["gallery", "{g}", "calibrate", "--eer", "--fmr", "0.1"], "--fmr cannot be used with --eer"),
+    (["identify", "{p}", "--gallery", "{g}", "--shortlist", "5"], "--shortlist works with --cascade only"),
+    (["identify", "{p}", "--gallery", "{g}", "--screen", "embedding"], "--screen works with --cascade only"),
+    (["evaluate", "{p}", "--out", "{o}", "--shortlist", "5"], "--shortlist works with --cascade only"),
+])
+def test_options_that_would_be_ignored_are_refused(tmp_path, args, refused):
+    """`gallery G calibrate --eer --fmr 0.1` ignored --fmr, `identify --shortlist 5` without --cascade the
+    shortlist: one line, before any work (the gallery is not even opened)."""
+    (tmp_path / "p.abs").write_text("")
+    names = {"g": tmp_path / "g.sqlite", "p": tmp_path / "p.abs", "o": tmp_path / "out"}
+    r = CliRunner().invoke(main, [a.format(**names) for a in args])
+    assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
+    assert r.output.startswith(f"error: {refused}")
+    assert not names["g"].exists() and not names["o"].exists()
+
+
+@pytest.mark.parametrize("size, fmt", [(("100000", "100000"), "abs"), (("3000", "3000"), "png"),
+                                       (("2001", "2000"), "bnt")])
+def test_synth_refuses_scans_its_readers_would_refuse(tmp_path, size, fmt):
+    """`synth --rows 100000 --cols 100000` was a MemoryError traceback, `--format png --rows 3000 --cols 3000` wrote
+    frames that `info` refuses (over MAX_POINTS pixels): one line, before any work (OUT not made)."""
+    from facerec3d.io.common import MAX_POINTS
+
+    rows, cols = size
+    r = CliRunner().invoke(main, ["synth", str(tmp_path / "x"), "--subjects", "1", "--scans", "1", "--rows", rows,
+                                  "--cols", cols, "--format", fmt])
+    assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
+    assert r.output.startswith(f"error: --rows {rows} --cols {cols}: {int(rows) * int(cols)} pixels a scan, more than "
+                               f"the {MAX_POINTS} facerec3d reads")
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("shape", [(1, 500), (500, 1), "two points"])
+def test_view_refuses_a_scan_too_thin_to_draw(tmp_path, shape):
+    """`view --raw` of a 1×500 or 500×1 depth map, or of two points, was a ValueError from np.gradient ("Shape of
+    array too small"): one line naming the file."""
+    import numpy as np
+
+    scan = tmp_path / "thin.npy"
+    np.save(scan, np.array([[0.0, 0.0, -1000.0], [1.0, 1.0, -1000.0]]) if shape == "two points"
+            else np.full(shape, -1000.0))
+    r = CliRunner().invoke(main, ["view", "--raw", str(scan), "-o", str(tmp_path / "v.png")])
+    assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
+    assert r.output.startswith(f"error: {scan}: too thin to draw (a grid of ")
+    assert not (tmp_path / "v.png").exists()

@@ -175,6 +175,19 @@ def test_preprocess_into_an_earlier_output_is_refused_without_overwrite(frames, 
         assert [row["output"] for row in csv.DictReader(f)] == [str(faces / "front_1.ply")]
 
 
+def test_preprocess_overwrite_of_an_unreadable_listing_is_one_line(tmp_path):
+    """OUT's landmarks.csv with a field over the csv module's limit: one line naming it, not `_csv.Error: field
+    larger than field limit`; nothing in OUT is touched."""
+    faces = tmp_path / "faces"
+    faces.mkdir()
+    (faces / "landmarks.csv").write_text("scan,status,output\na.png,ok," + "x" * 200_000 + ".npz\n")
+    r = CliRunner().invoke(main, ["preprocess", str(tmp_path / "a.png"), "-o", str(faces), "--overwrite"])
+    assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
+    assert r.output.startswith(f"error: {faces / 'landmarks.csv'}: not a readable CSV file (field larger than field "
+                               "limit")
+    assert (faces / "landmarks.csv").stat().st_size > 200_000
+
+
 def test_the_cache_says_where_it_is_and_can_be_listed_and_cleared(frames, tmp_path, monkeypatch):
     from facerec3d.preprocess import batch
 

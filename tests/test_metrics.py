@@ -402,3 +402,47 @@ def test_fused_score_files_are_the_fusion_of_their_rows(tmp_path):
     result = run("--out", str(tmp_path / "x.txt"), "--rule", "weighted-sum", "--weights", "1")
     assert result.exit_code == 2 and "one weight per source" in result.output
     assert not (tmp_path / "x.txt").exists()
+
+
+@pytest.mark.parametrize("args, reason", [
+    (["--rule", "weighted-sum", "--weights", "2,nan"], "--weights: must be a finite number, not nan"),
+    (["--rule", "weighted-sum", "--weights", "-1,2"], "--weights: must be >= 0, not -1.0"),
+    (["--rule", "borda", "--top", "-3"], "--top: must be >= 0, not -3"),
+    (["--rule", "weighted-sum", "--weights", "0,0"], "all weights are 0"),
+    (["--weights", "1,2"], "weights are for the weighted-sum rule: sum does not use them"),
+])
+def test_fuse_refuses_the_settings_the_fusion_method_refuses(tmp_path, args, reason):
+    """`facerec3d fuse` checks its settings as the `fusion` method's config does (ranges, weights that leave every
+    score 0) and refuses weights a rule would ignore: one line, nothing written (was: an empty file for a NaN weight,
+    all scores 0, a negative --top taken, weights ignored)."""
+    from click.testing import CliRunner
+
+    from facerec3d.cli import main
+
+    write_scores(tmp_path / "s.txt", np.array([[1.0, 0.2], [0.1, 0.9]]), ["a", "b"], ["p1", "p2"], ["a", "b"])
+    result = CliRunner().invoke(main, ["fuse", str(tmp_path / "s.txt"), str(tmp_path / "s.txt"),
+                                       "--out", str(tmp_path / "f.txt"), *args])
+    assert result.exit_code == 2 and result.output.startswith("error: ") and reason in result.output
+    assert result.output.count("\n") == 1 and not (tmp_path / "f.txt").exists()
+
+
+def test_csv_score_file_with_an_empty_id_is_named_by_line(tmp_path):
+    """A bob CSV score file with an empty (or missing) subject or probe id: an InputError naming the file, line and
+    column, from `metrics` and `fuse` alike (was: `ValueError: gallery id is empty` from writing scores.txt)."""
+    from click.testing import CliRunner
+
+    from facerec3d.cli import main
+
+    header = "bio_ref_subject_id,probe_subject_id,probe_template_id,score\na,a,p1,1\nb,a,p1,0\n"
+    (tmp_path / "c7.csv").write_text(header + ",a,p2,1\n")
+    (tmp_path / "c8.csv").write_text(header + "b,a\n")
+    with pytest.raises(InputError, match=r"c7\.csv:4: the bio_ref_subject_id field is empty"):
+        read_score_matrix(tmp_path / "c7.csv", "csv")
+    with pytest.raises(InputError, match=r"c8\.csv:4: the probe_template_id field is empty"):
+        read_score_matrix(tmp_path / "c8.csv", "csv")
+    for args in (["metrics", str(tmp_path / "c7.csv"), "--format", "csv", "--out", str(tmp_path / "m")],
+                 ["fuse", str(tmp_path / "c7.csv"), str(tmp_path / "c7.csv"), "--format", "csv",
+                  "--out", str(tmp_path / "f.txt")]):
+        result = CliRunner().invoke(main, args)
+        assert result.exit_code == 2 and result.output == f"error: {tmp_path / 'c7.csv'}:4: the bio_ref_subject_id " \
+                                                          "field is empty\n"

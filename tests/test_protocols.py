@@ -147,3 +147,22 @@ def test_a_manifest_listing_a_scan_twice_is_refused_and_subjects_keep_their_inne
     (tmp_path / "blank.csv").write_text("path,subject\na/1.abs,  \n")
     with pytest.raises(DatasetError, match=r"blank\.csv, line 2: empty path or subject"):
         read_manifest(tmp_path / "blank.csv")
+
+
+def test_a_manifest_and_a_csv_score_file_with_a_byte_order_mark_are_read(tmp_path):
+    """Excel's "CSV UTF-8" starts the file with a byte-order mark: the manifest was read as a point cloud by
+    `enroll` (its header was '\\ufeffpath,subject'), refused as headerless by `evaluate`, and a CSV score file had
+    "no column for claimed_id"."""
+    from facerec3d.datasets.catalog import read_manifest
+    from facerec3d.evaluation.scorefile import read_score_matrix
+    from facerec3d.gallery.service import scan_paths, scan_records
+
+    touch(tmp_path, ["a/1.abs", "b/1.abs"])
+    (tmp_path / "b1.csv").write_bytes(b"\xef\xbb\xbfpath,subject\na/1.abs,04200\nb/1.abs,04201\n")
+    assert [r.subject for r in read_manifest(tmp_path / "b1.csv").records] == ["04200", "04201"]
+    assert [r.subject for r in scan_records([tmp_path / "b1.csv"])] == ["04200", "04201"]
+    assert scan_paths([tmp_path / "b1.csv"]) == [tmp_path / "a/1.abs", tmp_path / "b/1.abs"]
+    (tmp_path / "s.csv").write_bytes(b"\xef\xbb\xbfbio_ref_subject_id,probe_subject_id,probe_template_id,score\n"
+                                     b"a,a,p1,1\nb,a,p1,0\n")
+    m = read_score_matrix(tmp_path / "s.csv", "csv")
+    assert list(m.gallery_ids) == ["a", "b"] and m.S.tolist() == [[1.0, 0.0]]

@@ -179,3 +179,28 @@ def test_compare_tables_fit_a_1280_px_page_and_mcnemar_by_hand(tmp_path):
     assert got[("a", "c")] == (20, 0, 10, pytest.approx(2 * 0.5**10), True)
     assert got[("b", "c")] == (20, 0, 10, pytest.approx(2 * 0.5**10), True)
     assert "differ (p < 0.05)" in (tmp_path / "cmp2" / "compare.md").read_text()
+
+
+def test_compare_runs_names_a_damaged_run_file(tmp_path):
+    """A run folder whose probes.csv or metrics.json is damaged (a column missing, not UTF-8, a JSON list or number
+    where compare reads an object or an interval): an InputError naming the file, not a KeyError, UnicodeDecodeError
+    or AttributeError."""
+    import shutil
+
+    from facerec3d.errors import InputError
+
+    make_run(tmp_path / "a", 0, "icp")
+    good = (tmp_path / "a" / "metrics.json").read_text()
+    damage = [("probes.csv", b"label,rank,status\np1,1,ok\n", "no column probe"),
+              ("probes.csv", b"probe,rank,status\n\xff\xfe,1,ok\n", "not UTF-8"),
+              ("metrics.json", json.dumps({**json.loads(good), "subsets": [1]}), "'subsets' is a JSON list"),
+              ("metrics.json", json.dumps({**json.loads(good), "subsets": {"x": 1}}), "subsets.x is a JSON int"),
+              ("metrics.json", json.dumps({**json.loads(good), "ci95": 3}), "'ci95' is a JSON int"),
+              ("metrics.json", json.dumps({**json.loads(good), "ci95": {"rank1": 0.5}}), "ci95.rank1 is not an interval"),
+              ("metrics.json", json.dumps({**json.loads(good), "timings": [2]}), "'timings' is a JSON list")]
+    for i, (name, text, reason) in enumerate(damage):
+        run = tmp_path / f"b{i}"
+        shutil.copytree(tmp_path / "a", run)
+        (run / name).write_bytes(text if isinstance(text, bytes) else text.encode())
+        with pytest.raises(InputError, match=f"{run / name}: .*{reason}"):
+            compare_runs([tmp_path / "a", run], tmp_path / "cmp")

@@ -195,7 +195,7 @@ def read_manifest(path: str | Path) -> Dataset:
     """A dataset from a manifest CSV (`path,subject[,expression][,role][,session][,label][,pose]`)."""
     path = Path(path)
     try:
-        with open(path, newline="") as f:
+        with open(path, newline="", encoding="utf-8-sig") as f:  # -sig: a BOM (Excel's "CSV UTF-8") is no column name
             rows = list(csv.DictReader(f))
     except (OSError, UnicodeDecodeError, csv.Error) as e:
         raise DatasetError(f"{path}: cannot read manifest ({e})") from None

@@ -15,7 +15,7 @@ from scipy.stats import binomtest
 
 from facerec3d.evaluation.plots import plot_cmc, plot_det, plot_roc
 from facerec3d.errors import InputError
-from facerec3d.evaluation.report import SET_COLUMNS, claim_run_folder, format_value, with_interval, write_pages
+from facerec3d.evaluation.report import RATES, SET_COLUMNS, claim_run_folder, format_value, with_interval, write_pages
 
 ALPHA = 0.05  # significance level of the McNemar tests
 #: The files compare_runs writes: a folder holding any of them holds a comparison.
@@ -33,6 +33,7 @@ def _load(run_dir: Path) -> tuple[dict, dict[str, np.ndarray]]:
         raise InputError(f"{path}: not a metrics file ({e})") from None
     if not isinstance(metrics, dict):
         raise InputError(f"{path}: not a metrics file (a JSON {type(metrics).__name__}, not an object)")
+    _check_layout(metrics, path)
     curves = run_dir / "curves.npz"
     if not curves.is_file():
         return metrics, {}
@@ -44,15 +45,39 @@ def _load(run_dir: Path) -> tuple[dict, dict[str, np.ndarray]]:
                          f"{str(e)[:200]})") from None
 
 
+def _check_layout(metrics: dict, path: Path) -> None:
+    """The parts of metrics.json that compare reads laid out as write_run writes them (objects; intervals as
+    [low, high]): InputError naming the file and the key, not an error deep in the tables."""
+    for key in ("ci95", "timings", "subsets", "masks"):
+        if (value := metrics.get(key)) is not None and not isinstance(value, dict):
+            raise InputError(f"{path}: not a metrics file ({key!r} is a JSON {type(value).__name__}, not an object)")
+    for key in ("subsets", "masks"):
+        for name, value in (metrics.get(key) or {}).items():
+            if not isinstance(value, dict):
+                raise InputError(f"{path}: not a metrics file ({key}.{name} is a JSON {type(value).__name__}, "
+                                 "not an object)")
+    for key, ci in (metrics.get("ci95") or {}).items():
+        if ci and not (isinstance(ci, list) and len(ci) == 2 and all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) or x is None and key not in RATES for x in ci)):
+            raise InputError(f"{path}: not a metrics file (ci95.{key} is not an interval [low, high])")
+
+
 def rank1_hits(run_dir: str | Path) -> dict[str, bool | None] | None:
     """{probe label: found at rank 1} from a run's probes.csv (None when the run has none). A failed probe is a
     miss; a processed probe whose subject is not enrolled is None (no identification attempt)."""
     path = Path(run_dir) / "probes.csv"
     if not path.is_file():
         return None
-    with open(path, newline="", encoding="utf-8") as f:
-        return {r["probe"]: (r["rank"] == "1") if r["rank"] or r["status"] == "failed" else None
-                for r in csv.DictReader(f)}
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f)
+            if missing := [c for c in ("probe", "rank", "status") if c not in (reader.fieldnames or [])]:
+                raise InputError(f"{path}: not a run's probes file: no column {', '.join(missing)}")
+            return {r["probe"]: (r["rank"] == "1") if r["rank"] or r["status"] == "failed" else None for r in reader}
+    except UnicodeDecodeError as e:
+        raise InputError(f"{path}: not UTF-8 text (a byte {e.object[e.start:e.start + 1]!r})") from None
+    except csv.Error as e:  # a field over the csv module's limit, a NUL byte
+        raise InputError(f"{path}: not a readable CSV file ({e})") from None
 
 
 def mcnemar(a: dict[str, bool | None], b: dict[str, bool | None]) -> dict:

@@ -30,7 +30,7 @@ from typing import NamedTuple
 import numpy as np
 
 from facerec3d.datasets.catalog import one_field
-from facerec3d.errors import InputError
+from facerec3d.errors import InputError, SettingsError
 
 
 class ScoreRows(NamedTuple):
@@ -112,9 +112,10 @@ def _read_columns(path: str | Path, n: int) -> list[np.ndarray]:
 
 @contextmanager
 def _text(path: str | Path, newline: str | None = None):
-    """A score file opened as UTF-8 text; a byte that is not UTF-8 is one InputError naming the file."""
+    """A score file opened as UTF-8 text, a byte-order mark (Excel's "CSV UTF-8") skipped; a byte that is not UTF-8 is
+    one InputError naming the file."""
     try:
-        with open(path, encoding="utf-8", newline=newline) as f:
+        with open(path, encoding="utf-8-sig", newline=newline) as f:
             yield f
     except UnicodeDecodeError as e:
         raise InputError(f"{path}: not UTF-8 text (a byte {e.object[e.start:e.start + 1]!r}): save it as UTF-8") \
@@ -157,7 +158,11 @@ def _csv_columns(path: str | Path) -> tuple[np.ndarray, np.ndarray | None, np.nd
                        if c is None and role != "model_label"] + ([] if "score" in header else ["score"])
             if missing:
                 raise InputError(f"{path}: not a bob CSV score file: no column for {', '.join(missing)}")
-            rows = list(reader)
+            rows = []
+            for r in reader:  # an empty id would be a subject or probe called "" (and no field of bob4)
+                if empty := next((c for role, c in chosen.items() if role != "model_label" and not r[c]), None):
+                    raise InputError(f"{path}:{reader.line_num}: the {empty} field is empty")
+                rows.append(r)
         except csv.Error as e:  # a field over the csv module's limit, a NUL byte
             raise InputError(f"{path}: not a readable CSV file ({e})") from None
     try:
@@ -233,15 +238,23 @@ def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str =
     gallery templates it was compared with, then combined by `rule` (InputError when the files share none). Probes
     are matched by label, templates by (subject, label). Returns the fused matrix and the number of comparisons left out because some file lacks them
     (a comparison is fused only where every file has it; a score of −inf, a match not found, counts as that
-    probe's worst). Raises InputError naming the file when the files disagree on a probe's subject."""
-    from facerec3d.matching.normalisation import check_fusion, fuse
+    probe's worst). Raises InputError naming the file when the files disagree on a probe's subject, and the fusion
+    method's errors for its settings (SettingsError naming `weights` or `top` out of range, InputError otherwise;
+    weights with a rule that ignores them too)."""
+    from facerec3d.matching.fusion import FusionConfig
+    from facerec3d.matching.normalisation import fuse
 
     if len(paths) < 2:
         raise InputError("fusion needs at least two score files")
-    try:
-        check_fusion(rule, normalisation, weights, len(paths))
+    try:  # the checks of the fusion method's settings (ranges: SettingsError naming the field)
+        FusionConfig(members=tuple(map(str, paths)), normalisation=normalisation, rule=rule, weights=tuple(weights),
+                     top=top)
+    except SettingsError:
+        raise
     except ValueError as e:
         raise InputError(str(e)) from None
+    if weights and rule != "weighted-sum":
+        raise InputError(f"weights are for the weighted-sum rule: {rule} does not use them")
     mats = [read_score_matrix(p, fmt) for p in paths]
     first = mats[0]
     probes = {str(label): i for i, label in enumerate(first.probe_labels)}

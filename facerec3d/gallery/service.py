@@ -107,7 +107,7 @@ def _is_manifest(path: Path) -> bool:
     """A CSV file whose header names the columns path and subject (other CSV files are point-cloud scans)."""
     if path.suffix.lower() != ".csv" or not path.is_file():  # a missing file: the reader says so
         return False
-    with open(path, newline="", errors="replace") as f:
+    with open(path, newline="", encoding="utf-8-sig", errors="replace") as f:  # -sig: Excel's "CSV UTF-8" BOM
         header = {c.strip().lower() for c in f.readline().split(",")}
     return {"path", "subject"} <= header
 

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from facerec3d.config import check_ranges
 from facerec3d.errors import SettingsError
 from facerec3d.matching.base import (GalleryNormalised, Matcher, Template, merge_shard_scores, shard_rows, shard_scores,
                                      with_added)
@@ -78,6 +79,7 @@ class FusionConfig:
     top: int = 0  # Borda points only for each source's `top` best (0 = all), rules borda / consensus
 
     def __post_init__(self) -> None:
+        check_ranges(self)  # NaN or a negative weight named before the checks below compute with it
         if not self.members:
             raise ValueError("fusion needs at least one member method")
         if unknown := set(self.member_options) - set(self.members):

@@ -117,3 +117,5 @@ def check_fusion(rule: str, normalisation: str, weights: Sequence[float], n_sour
         raise ValueError("the product rule needs a non-negative normalisation: min-max, tanh or tanh-hampel")
     if rule == "weighted-sum" and len(weights) != n_sources:
         raise ValueError(f"weighted-sum needs one weight per source: {n_sources} sources, {len(weights)} weights")
+    if rule == "weighted-sum" and not any(weights):  # every fused score 0: no ranking at all
+        raise ValueError("weighted-sum needs a weight above 0: all weights are 0")
