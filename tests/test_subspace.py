@@ -198,3 +198,14 @@ def test_a_damaged_model_file_is_refused_when_loaded_naming_the_file_and_the_arr
         Template(None, None, method, {"mean": arrays["mean"]}, {"options": matcher.options(), "state": {}}).save(bad)
         with pytest.raises(FaceRec3DError, match=r"bad.npz: not a usable .* model \(no 'projection' array\)"):
             load_matcher(bad)
+
+
+def test_lda_refuses_training_scans_with_no_variation_within_a_person():
+    """Copies of one scan per person leave S_w singular: scipy's LinAlgError ("leading minor ... not positive
+    definite") was a traceback; one line saying why now."""
+    from facerec3d.errors import InputError
+
+    f, g = model_face(1), model_face(2)
+    for scans in ([f] * 4, [f, f, g, g]):
+        with pytest.raises(InputError, match="lda: the training scans show no variation within a person"):
+            make_matcher("lda").fit(scans, ["a", "a", "b", "b"])

@@ -225,7 +225,10 @@ class LDAMatcher(_SubspaceMatcher):
     config_class = LDAConfig
 
     def fit(self, scans: Sequence[FaceScan], subjects: Sequence[str]) -> LDAMatcher:
-        """Learn PCA (§8.8.3) then the Fisher directions (§8.8.2) from training faces of ≥ 2 subjects."""
+        """Learn PCA (§8.8.3) then the Fisher directions (§8.8.2) from training faces of ≥ 2 subjects.
+
+        Faces with no variation within a person (copies of one scan) leave S_w singular however far PCA reduces,
+        and the chapter's LDA has no regulariser: they are refused (InputError), not scipy's LinAlgError."""
         check_training(scans, subjects, self.name)
         n_classes = len(set(subjects))
         if n_classes < 2 or len(scans) <= n_classes:
@@ -238,6 +241,11 @@ class LDAMatcher(_SubspaceMatcher):
             wanted = max(n_classes - 1, round(self.config.pca_share * limit))
         n_pca = min(wanted, limit)
         mean, components, _ = pca(X, n_pca)
-        W, _ = fisher_lda((X - mean) @ components, subjects, self.config.n_components)
+        try:
+            W, _ = fisher_lda((X - mean) @ components, subjects, self.config.n_components)
+        except np.linalg.LinAlgError:  # S_w not positive definite: identical scans of a person (copies)
+            raise InputError(f"{self.name}: the training scans show no variation within a person ({len(X)} faces of "
+                             f"{n_classes} subjects, the within-person scatter is singular): LDA learns from "
+                             "different scans of each subject, not copies of one") from None
         self._learnt(X, mean, components @ W)
         return self
