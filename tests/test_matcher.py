@@ -267,3 +267,33 @@ def test_cascade_settings_built_in_python_are_checked():
     with pytest.raises(SettingsError, match="^radius_mm: must be > 0, not -64$"):
         CascadeConfig(radius_mm=-64)
     assert CascadeConfig(min_y_mm=-30.0).min_y_mm == -30.0  # a height below the nose tip, as the default's -15
+
+
+@pytest.mark.parametrize("name", ["icp", "region-icp", "curvature", "keypoints", "pca", "lda", "afm", "morph-id",
+                                  "embedding", "fusion"])
+def test_every_method_names_what_it_takes_when_given_the_wrong_type(name):
+    """An array of points as a probe reached the ICP kernel (a Numba TypingError 7 frames deep), a matmul or
+    broadcast (pca, lda, morph-id), a wrong diagnosis (embedding: "enrolled with another model") or an
+    AttributeError; so did enrolling one; a threshold "1.0" was Python's TypeError and NaN rejected everything
+    silently. One InputError line naming what was expected now, from the base class (probes, thresholds) and
+    check_face (scans)."""
+    from facerec3d.errors import InputError
+    from facerec3d.matching.registry import make_matcher
+
+    matcher = make_matcher(name)
+    template = Template(None, None, name, {"features": np.zeros(4)})
+    points = np.zeros((50, 3))
+    for bad, shown in ((points, "ndarray" if name in ("icp", "region-icp", "curvature", "keypoints", "afm", "fusion")
+                        else r"an array of shape \(50, 3\)"), (None, "NoneType")):
+        for call in (lambda: matcher.score(bad, template), lambda: matcher.scores(bad, [template]),
+                     lambda: matcher.identify(bad, [template]), lambda: matcher.verify(bad, template, 0.0)):
+            with pytest.raises(InputError, match=rf"^probe must be a FaceScan or a prepared probe \({name}: .*{shown}"):
+                call()
+        with pytest.raises(InputError, match=f"^scan must be a FaceScan, not {type(bad).__name__}$"):
+            matcher.enroll(bad)
+    for threshold in ("1.0", float("nan"), None):
+        with pytest.raises(InputError, match="^threshold must be a number, not "):
+            matcher.verify(points, template, threshold)
+    if name in ("pca", "morph-id"):  # a vector of another length: the Euclidean distance broadcast it silently
+        with pytest.raises(InputError, match="a probe of 1 features against templates of 4"):
+            matcher.score(np.zeros(1), Template(None, None, name, {"features": np.zeros(4), "identity": np.zeros(4)}))

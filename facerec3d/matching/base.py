@@ -26,7 +26,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, is_dataclass
 from os import PathLike
-from typing import Any, Generic, NamedTuple, TypeVar
+from typing import Any, Generic, NamedTuple, TypeVar, get_args, get_origin
 
 import numpy as np
 
@@ -80,7 +80,11 @@ class Template:
 
 def vector_similarity(p: np.ndarray, G: np.ndarray, distance: str, scale: np.ndarray | None = None) -> np.ndarray:
     """Similarities of a feature vector `p` to each row of `G`: the cosine, or else minus the Euclidean distance
-    (of the differences divided by `scale` when given: Mahalanobis in a whitened space, §8.7.3)."""
+    (of the differences divided by `scale` when given: Mahalanobis in a whitened space, §8.7.3). A `p` of another
+    length is an InputError (the Euclidean distance broadcast a 1-vector silently, the cosine gave matmul's error)."""
+    if G.ndim == 2 and G.shape[1] != len(p):
+        raise InputError(f"a probe of {len(p)} features against templates of {G.shape[1]}: "
+                         "prepared by another model or method")
     if distance == "cosine":
         return G @ p / np.maximum(np.linalg.norm(G, axis=1) * np.linalg.norm(p), np.finfo(float).tiny)
     diff = G - p if scale is None else (G - p) / scale
@@ -102,6 +106,8 @@ NEAR_ORIGIN_MM = 50.0
 def check_face(scan: FaceScan) -> None:
     """Refuse (InputError) what no matcher can use: a scan with no points, or one that preprocessing has not put in
     the frontal frame, nose tip at the origin (matchers gave −inf, 0 or a KeyError for raw scans)."""
+    if not isinstance(scan, FaceScan):  # an array of points, None: an AttributeError ("no attribute 'meta'") was
+        raise InputError(f"scan must be a FaceScan, not {type(scan).__name__}")  # all a caller saw
     who = scan.meta.path or scan.meta.scan_id or "the scan"
     if not scan.n_points:
         raise InputError(f"{who}: an empty face, nothing to match")
@@ -111,6 +117,37 @@ def check_face(scan: FaceScan) -> None:
         raise InputError(f"{who}: not a preprocessed face (its points lie {far:.0f} mm or more from the origin, where "
                          "preprocessing puts the nose tip): preprocess it first (facerec3d preprocess, or "
                          "facerec3d.preprocess.Preprocessor)")
+
+
+def check_probe(matcher: "Matcher", probe: Any) -> Any:
+    """A prepared probe as the matcher's `prepare` makes it (its declared probe type `P`; a vector of numbers for a
+    feature vector), else InputError naming what was expected: an array of points, say, reached the ICP kernel as a
+    Numba TypingError, the subspace matchers as a broadcast error, the others as an AttributeError."""
+    expected = probe_type(type(matcher))
+    what = f"probe must be a FaceScan or a prepared probe ({matcher.name}: {expected.__name__}, from prepare())"
+    if not isinstance(probe, expected):
+        raise InputError(f"{what}, not {type(probe).__name__}")
+    if isinstance(probe, np.ndarray) and (probe.ndim != 1 or not probe.size or probe.dtype.kind not in "iuf"):
+        raise InputError(f"{what}, a vector of features, not an array of shape {probe.shape} ({probe.dtype})")
+    return probe
+
+
+def probe_type(cls: type) -> type:
+    """The probe type `P` a matcher class declares (`Matcher[ProbeData]`); Template, `prepare`'s default, when none."""
+    for klass in cls.__mro__:
+        for base in getattr(klass, "__orig_bases__", ()):
+            if get_origin(base) is Matcher and isinstance(arg := get_args(base)[0], type):
+                return arg
+    return Template
+
+
+def check_threshold(threshold: Any) -> float:
+    """A verification threshold: a number, not NaN (every score compares False with NaN: all rejected silently; a
+    string gave Python's TypeError)."""
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.integer, np.floating)) \
+            or np.isnan(threshold):
+        raise InputError(f"threshold must be a number, not {threshold!r}")
+    return float(threshold)
 
 
 def check_training(scans: Sequence[FaceScan], subjects: Sequence[str], name: str, least: int = 2) -> None:
@@ -283,8 +320,9 @@ class Matcher(ABC, Generic[P]):
         return self.enroll(scan)
 
     def _probe(self, probe: FaceScan | P) -> P:
-        """A probe as `prepare` makes it, from a scan or an already prepared probe."""
-        return self.prepare(probe) if isinstance(probe, FaceScan) else probe
+        """A probe as `prepare` makes it, from a scan or an already prepared probe (`check_probe`: every matcher's
+        score and scores come through here, so the check is in one place)."""
+        return self.prepare(probe) if isinstance(probe, FaceScan) else check_probe(self, probe)
 
     @abstractmethod
     def score(self, probe: FaceScan | P, template: Template) -> float:
@@ -301,7 +339,8 @@ class Matcher(ABC, Generic[P]):
         return [(int(i), float(s[i])) for i in best_k(s, tiebreak, k)]
 
     def verify(self, probe: FaceScan | P, template: Template, threshold: float) -> bool:
-        """Accept the claimed identity when the score reaches the threshold."""
+        """Accept the claimed identity when the score reaches the threshold (a number: `check_threshold`)."""
+        threshold = check_threshold(threshold)
         return bool(self.score(probe, template) >= threshold)
 
 
