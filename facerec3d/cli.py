@@ -189,6 +189,19 @@ def synth(out, subjects, scans, fmt, seed, first_subject, expressions, expressio
     click.echo(f"wrote {subjects * scans} scans; manifest and ground truth: {manifest}")
 
 
+def _capped_jobs(ctx, param, value: int | None) -> int | None:
+    """--jobs, at most `workers.JOBS_PER_CORE` processes per core, saying so once when it caps: more only queue for
+    the cores (--jobs 100000 opened a process pool each and ran out of open files)."""
+    from facerec3d.workers import JOBS_PER_CORE
+
+    limit = JOBS_PER_CORE * (os.cpu_count() or 1)
+    if value is not None and value > limit:
+        click.echo(f"warning: --jobs {value}: using {limit} processes ({JOBS_PER_CORE} per core; more would only wait "
+                   "for a core)", err=True)
+        return limit
+    return value
+
+
 def _finite(value: float | None, name: str) -> float | None:
     """A click option's float, refused (a usage error) when it is NaN or infinite: no score compares to NaN."""
     import math
@@ -271,6 +284,7 @@ LANDMARK_COLUMNS = ("nose_tip", "nose_bridge", "left_eye_inner", "right_eye_inne
 @click.option("--config", "config_file", type=click.Path(dir_okay=False), help="TOML or JSON preprocessing settings.")
 @click.option("--format", "fmt", type=click.Choice(["npz", "ply"]), default="npz", show_default=True)
 @click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", type=click.IntRange(min=1),
+              callback=_capped_jobs,
               help="Processes to use.")
 @_INTRINSICS_OPTION
 @friendly
@@ -364,6 +378,7 @@ def _engine_options(fn):
     fn = click.option("--scheduler", help="Dask scheduler address (e.g. tcp://host:8786): shard the gallery over "
                       "its workers instead of local processes (pip install 'facerec3d[distributed]').")(fn)
     return click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", type=click.IntRange(min=1),
+                        callback=_capped_jobs,
                         help="Processes to use (the gallery is split into one shard per process).")(fn)
 
 
@@ -718,7 +733,7 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
     options = read_settings(method_config) if method_config else None
     records = scan_records(data, subject, gallery_only)  # bad input is one line, before the cache's first-use note
     cache = _cache_folder(cache)
-    with Engine.create(jobs, scheduler) as engine:
+    with Engine.create(jobs, scheduler, items=len(records)) as engine:
         matcher = _gallery_matcher(gallery) if method is None and not (options or train or model) else None
         if matcher is None:
             matcher, _ = trained_matcher(method or DEFAULT_METHOD, options, train=train, model=model, workers=engine,
@@ -800,7 +815,8 @@ def identify(probe, gallery, k, config_file, cache, intrinsics, cascade, shortli
     from facerec3d.preprocess import PreprocessConfig
 
     config = PreprocessConfig.load(config_file) if config_file else None
-    with _one_blas_thread(), GalleryStore(gallery) as store, Engine.create(jobs, scheduler) as engine:
+    with _one_blas_thread(), GalleryStore(gallery) as store, \
+            Engine.create(jobs, scheduler, items=len(store.entries())) as engine:  # a shard per entry at most
         hits = identify_scan(store, probe, k=k, cascade=_cascade_config(cascade, shortlist, screen), config=config,
                              engine=engine, cache=_cache_folder(cache), intrinsics=intrinsics)
     click.echo(f"{'rank':>4}  {'subject':<12}{'scan':<20}{'score':>12}")
@@ -1080,6 +1096,7 @@ def gallery_rekey(store, new_key_file):
               help="File keeping the training samples, reused when it holds as many [default: OUT with "
                    ".trainset.npz].")
 @click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", type=click.IntRange(min=1),
+              callback=_capped_jobs,
               help="Processes making the samples; torch trains on as many threads.")
 @friendly
 def train_nose(out, samples, epochs, seed, data_seed, trainset, jobs):
@@ -1143,6 +1160,7 @@ def train_nose(out, samples, epochs, seed, data_seed, trainset, jobs):
               help="Start from a model's weights (MODEL.weights.npz, written beside every model).")
 @_CACHE_OPTION
 @click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", type=click.IntRange(min=1),
+              callback=_capped_jobs,
               help="Processes making the training faces; torch trains on as many threads.")
 @friendly
 def train_embedding(out, identities, scans, sensors, identity_profiles, epochs, width, seed, data_seed, max_yaw,
@@ -1435,7 +1453,8 @@ def fuse(scores, out, fmt, normalisation, rule, weights, top, overwrite):
 @click.option("--methods", default="icp,region-icp,lda", show_default=True,
               help="Comma-separated methods to evaluate and compare (learnt ones get a disjoint training set).")
 @click.option("--out", "out", default="demo-out", show_default=True, type=click.Path(file_okay=False))
-@click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", type=click.IntRange(min=1))
+@click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", type=click.IntRange(min=1),
+              callback=_capped_jobs)
 @click.option("--seed", default=0, show_default=True)
 @friendly
 def demo(subjects, scans, methods, out, jobs, seed):

@@ -27,7 +27,20 @@ from threadpoolctl import ThreadpoolController
 
 from facerec3d.errors import InputError
 
+#: Local worker processes at most per core: more only queue for the cores, and each holds pipes open (--jobs 100000
+#: ran out of open files before any work).
+JOBS_PER_CORE = 4
+
 _THREADPOOLS = ThreadpoolController()  # made once: inspecting the loaded BLAS libraries costs milliseconds
+
+
+def useful_jobs(jobs: int | None, items: int | None = None) -> int:
+    """The local processes worth starting when `jobs` are asked for (None: all cores): no more than `items`, the
+    pieces of work there are to share (a 3-entry gallery is 3 shards at most; one scan needs one process), nor
+    `JOBS_PER_CORE` per core; at least 1."""
+    cores = os.cpu_count() or 1
+    n = min(cores if jobs is None else jobs, JOBS_PER_CORE * cores)
+    return max(1, n if items is None else min(n, items))
 
 
 def one_thread_per_process() -> None:
@@ -73,9 +86,10 @@ class Workers:
         self._client, self._own_client, self._addresses = client, own_client, list(addresses)
 
     @classmethod
-    def create(cls, jobs: int | None = None, scheduler: Any = None):
-        """`jobs` local processes (None: all cores; 1: this process), or the workers of a Dask scheduler
-        (an address such as "tcp://host:8786", or a `distributed.Client`)."""
+    def create(cls, jobs: int | None = None, scheduler: Any = None, items: int | None = None):
+        """`jobs` local processes (None: all cores; 1: this process), capped at what is useful for `items` pieces
+        of work (`useful_jobs`), or the workers of a Dask scheduler (an address such as "tcp://host:8786", or a
+        `distributed.Client`)."""
         if scheduler is not None:
             try:
                 from distributed import Client
@@ -98,8 +112,7 @@ class Workers:
             client.run(one_thread_per_process)  # as on local workers (Dask's nanny does it for worker processes)
             return cls([client.get_executor(workers=[w], allow_other_workers=False, pure=False) for w in workers],
                        client, own, workers)
-        if jobs is None:
-            jobs = os.cpu_count() or 1
+        jobs = useful_jobs(jobs, items)
         if jobs <= 1:
             return cls([InlineExecutor()])
         return cls([ProcessPoolExecutor(1, initializer=_init_worker) for _ in range(jobs)])

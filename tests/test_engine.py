@@ -210,3 +210,28 @@ def test_a_malformed_scheduler_address_is_one_clear_error():
     for address, why in (("tcp://localhost", "missing port number"), ("127.0.0.1:8799x", "invalid literal")):
         with pytest.raises(InputError, match=rf"scheduler '{address}': not a Dask scheduler's address \(.*{why}"):
             Engine.create(scheduler=address)
+
+
+def test_jobs_are_capped_at_what_is_useful(tmp_path, monkeypatch):
+    """--jobs 100000 opened a process pool each before any work and stopped with "[Errno 24] Too many open files";
+    identify and evaluate started --jobs processes for a 3-entry gallery. At most JOBS_PER_CORE per core now (the
+    command line saying so once) and no more than the pieces of work."""
+    from click.testing import CliRunner
+
+    from facerec3d.cli import main
+    from facerec3d.workers import JOBS_PER_CORE, InlineExecutor, Workers
+
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    with Workers.create(100_000) as workers:
+        assert workers.workers == 2 * JOBS_PER_CORE
+    with Engine.create(100_000, items=3) as engine:
+        assert engine.workers == 3
+    with Engine.create(8, items=1) as engine:
+        assert isinstance(engine.executors[0], InlineExecutor)
+    r = CliRunner().invoke(main, ["synth", str(tmp_path / "d"), "--subjects", "1", "--scans", "1", "--rows", "120",
+                                  "--cols", "160"])
+    assert r.exit_code == 0, r.output
+    scan = next(p for p in (tmp_path / "d").rglob("*") if p.is_file() and p.name != "manifest.csv")
+    r = CliRunner().invoke(main, ["preprocess", str(scan), "-o", str(tmp_path / "p"), "--jobs", "100000"])
+    assert r.output.count(f"warning: --jobs 100000: using {2 * JOBS_PER_CORE} processes") == 1, r.output
+    assert "Too many open files" not in r.output

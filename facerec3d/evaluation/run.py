@@ -67,7 +67,7 @@ def evaluate(data: str | Path, method: str = DEFAULT_METHOD, out: str | Path = "
     claim_run_folder(out, overwrite, keep=[model])
     if cascade is not None and model is None:  # refused before any training, not after
         check_cascadable(make_matcher(method, options))
-    with Engine.create(jobs, scheduler) as engine:
+    with Engine.create(jobs, scheduler, items=len(dataset.records)) as engine:  # no more processes than scans
         matcher, training = trained_matcher(method, options, train=train, model=model, workers=engine, cache=cache,
                                             config=config, progress=progress, echo=echo)
         if cascade is not None:

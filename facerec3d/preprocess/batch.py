@@ -172,5 +172,5 @@ def preprocess_files(paths: Sequence[str | Path], config: PreprocessConfig = Pre
     if workers is not None:
         yield from workers.imap(preprocess_file, files, *args)
         return
-    with Workers.create(jobs if len(files) > 1 else 1) as own:
+    with Workers.create(jobs, items=len(files)) as own:
         yield from own.imap(preprocess_file, files, *args)
