@@ -1076,11 +1076,20 @@ def gallery_rekey(store, new_key_file):
 
     if _remote_gallery() is not None:
         raise click.UsageError("rekey works on a gallery store file, not --server")
-    new = TemplateKey.load(new_key_file) if os.path.exists(new_key_file) else TemplateKey.make(new_key_file)
-    with GalleryStore(store) as s:
-        if s.key is not None and s.key.check == new.check:
-            raise GalleryError(f"{new_key_file}: this is the gallery's key already")
-        n = s.rekey(new)
+    made = not os.path.exists(new_key_file)
+    new = TemplateKey.make(new_key_file) if made else TemplateKey.load(new_key_file)
+    s = None
+    try:
+        with GalleryStore(store) as s:
+            if s.key is not None and s.key.check == new.check:
+                raise GalleryError(f"{new_key_file}: this is the gallery's key already")
+            n = s.rekey(new)
+    except BaseException:
+        # A key made for a rekey that failed (no store, the old key missing or wrong) is removed: it encrypts
+        # nothing. Not once the store took it (rekey commits, then rewrites the file): then it is the only key.
+        if made and (s is None or s.key is not new):
+            Path(new_key_file).unlink(missing_ok=True)
+        raise
     click.echo(f"{store}: {n} arrays encrypted under the key in {new_key_file}; from now on give "
                f"{KEY_FILE_ENV}={new_key_file}")
 

@@ -288,3 +288,27 @@ def test_rekey_encrypts_a_clear_gallery_and_renews_the_key(tmp_path, monkeypatch
     monkeypatch.setenv(KEY_FILE_ENV, str(tmp_path / "k1"))
     with pytest.raises(GalleryError, match="not encrypted, but a key is given"):
         GalleryStore(tmp_path / "clear.sqlite")
+
+
+def test_a_failed_rekey_leaves_no_new_key_file(tmp_path, monkeypatch):
+    """A rekey that failed (no such store, the old key missing or wrong) left a new random key file behind anyway,
+    one that encrypts nothing; a key file that was there already is left alone."""
+    from facerec3d.gallery.store import KEY_ENV, KEY_FILE_ENV, TemplateKey
+
+    monkeypatch.delenv(KEY_ENV, raising=False)
+    monkeypatch.delenv(KEY_FILE_ENV, raising=False)
+    gallery = tmp_path / "g.sqlite"
+    small_gallery(gallery, key=TemplateKey.make(tmp_path / "old.key"))[0].close()
+    TemplateKey.make(tmp_path / "wrong.key")
+    TemplateKey.make(tmp_path / "kept.key")
+    for store, old_key, why in ((tmp_path / "missing.sqlite", None, "no such gallery"),
+                                (gallery, None, "encrypted"), (gallery, "wrong.key", "not the gallery's key")):
+        if old_key:
+            monkeypatch.setenv(KEY_FILE_ENV, str(tmp_path / old_key))
+        for new_key in ("new.key", "kept.key"):
+            r = CliRunner().invoke(main, ["gallery", str(store), "rekey", "--new-key-file", str(tmp_path / new_key)])
+            assert r.exit_code != 0 and why in r.output, r.output
+        assert not (tmp_path / "new.key").exists() and (tmp_path / "kept.key").exists()
+    monkeypatch.setenv(KEY_FILE_ENV, str(tmp_path / "old.key"))
+    r = CliRunner().invoke(main, ["gallery", str(gallery), "rekey", "--new-key-file", str(tmp_path / "new.key")])
+    assert r.exit_code == 0 and (tmp_path / "new.key").exists(), r.output
