@@ -312,3 +312,23 @@ def test_a_failed_rekey_leaves_no_new_key_file(tmp_path, monkeypatch):
     monkeypatch.setenv(KEY_FILE_ENV, str(tmp_path / "old.key"))
     r = CliRunner().invoke(main, ["gallery", str(gallery), "rekey", "--new-key-file", str(tmp_path / "new.key")])
     assert r.exit_code == 0 and (tmp_path / "new.key").exists(), r.output
+
+
+@pytest.mark.skipif(os.name != "posix", reason="Unix file modes")
+def test_a_key_file_others_may_read_is_used_with_one_warning(tmp_path, monkeypatch, capsys):
+    """A gallery key file of mode 0644 was accepted without a word; it is still used (a warning, as ssh gives for
+    private keys, not a refusal), with one line on stderr naming it, once per process; a 0600 one says nothing."""
+    from facerec3d.gallery.store import KEY_ENV, KEY_FILE_ENV, GalleryStore, TemplateKey
+
+    monkeypatch.delenv(KEY_ENV, raising=False)
+    key = tmp_path / "g.key"
+    small_gallery(tmp_path / "g.sqlite", key=TemplateKey.make(key))[0].close()
+    monkeypatch.setenv(KEY_FILE_ENV, str(key))
+    GalleryStore(tmp_path / "g.sqlite").close()
+    assert capsys.readouterr().err == ""
+    key.chmod(0o644)
+    for _ in range(2):
+        with GalleryStore(tmp_path / "g.sqlite") as s:
+            assert len(s.templates()) == 2
+    err = capsys.readouterr().err
+    assert err == f"warning: {key}: the gallery key file is open to others (mode 0644): chmod 600 {key}\n", err

@@ -47,6 +47,7 @@ import os
 import secrets
 import sqlite3
 import stat
+import sys
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -132,6 +133,21 @@ def decode_array(dtype: str, shape: str, data: bytes, checksum: str) -> np.ndarr
 KEY_FILE_ENV = "FACEREC3D_GALLERY_KEY_FILE"  # a file holding the templates' key (64 hex digits)
 KEY_ENV = "FACEREC3D_GALLERY_KEY"  # or the key itself
 SCHEME = "AES-256-GCM"
+_OPEN_KEY_FILES: set[str] = set()  # key files already warned about (`check_key_file_mode`), once per process
+
+
+def check_key_file_mode(path: str | PathLike) -> None:
+    """Warn on stderr, once per file and process, when a key file can be read or written by group or others (as
+    ssh does for private keys): the key decrypts every template. A warning, not a refusal: the file is the
+    owner's to protect, and file systems without Unix modes (Windows) show none."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return
+    if os.name == "posix" and mode & 0o077 and str(path) not in _OPEN_KEY_FILES:
+        _OPEN_KEY_FILES.add(str(path))
+        print(f"warning: {path}: the gallery key file is open to others (mode {stat.S_IMODE(mode):04o}): "
+              f"chmod 600 {path}", file=sys.stderr, flush=True)
 
 
 class TemplateKey:
@@ -158,11 +174,13 @@ class TemplateKey:
 
     @classmethod
     def load(cls, path: str | PathLike) -> "TemplateKey":
-        """The key in a file; GalleryError naming the file when it cannot be read or is not a key."""
+        """The key in a file; GalleryError naming the file when it cannot be read or is not a key; a warning when
+        others may read it (`check_key_file_mode`)."""
         try:
             text = Path(path).read_text(encoding="ascii")
         except (OSError, UnicodeDecodeError) as e:
             raise GalleryError(f"{path}: cannot read the gallery key ({type(e).__name__})") from None
+        check_key_file_mode(path)
         return cls.from_text(text, str(path))
 
     @classmethod
