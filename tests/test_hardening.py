@@ -380,6 +380,32 @@ def test_a_damaged_cache_entry_is_recomputed(data, tmp_path):
     assert r.exit_code == 0 and "2 enrolled" in r.output, r.output
 
 
+def test_a_cache_entry_that_is_a_folder_is_recomputed(data, tmp_path, monkeypatch):
+    """A folder under an entry's name stopped the whole run ("...tmp.npz: is a directory", naming a temporary file,
+    from the rename of the new entry onto it): it is damaged like any other entry, removed and computed again; one
+    that cannot be removed leaves that scan uncached, and the run goes on."""
+    cache = shutil.copytree(data["cache"], tmp_path / "cache")
+    scans = data["scans"][:2]
+    entries = [cache / (cache_key(s, PreprocessConfig()) + ".npz") for s in scans]
+    for entry in entries:
+        entry.unlink()
+        entry.mkdir()
+        (entry / "inside").write_text("x")
+    again = list(preprocess_files(scans, jobs=1, cache=cache))
+    assert [o.face is not None and not o.cached for o in again] == [True, True]
+    assert all(e.is_file() for e in entries) and all(o.cached for o in preprocess_files(scans, jobs=1, cache=cache))
+    fail = cache / (cache_key(data["broken"], PreprocessConfig()) + ".fail")
+    fail.mkdir()  # a failure's entry
+    assert preprocess_file(data["broken"], cache=cache).error and fail.is_file()
+    entries[0].unlink()
+    entries[0].mkdir()
+    (entries[0] / "inside").write_text("x")
+    monkeypatch.setattr(batch.shutil, "rmtree", lambda *a, **k: None)  # a folder that cannot be removed
+    outcome = preprocess_file(scans[0], cache=cache)
+    assert outcome.face is not None and not outcome.cached and entries[0].is_dir()
+    assert [p.name for p in cache.iterdir() if ".tmp." in p.name] == []  # no temporary file left either
+
+
 def test_faces_cached_by_another_version_of_the_code_are_made_again(data, tmp_path, monkeypatch):
     cache = tmp_path / "cache"
     scan = data["scans"][0]

@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+import shutil
 import time
 import uuid
 from collections.abc import Iterator, Sequence
@@ -123,7 +124,8 @@ def cache_entries(cache: str | Path) -> list[Path]:
 
 def _read_cache(stored: Path, path: str | Path) -> Outcome | None:
     """The cached outcome under key path `stored` (face `.npz` or failure `.fail`), or None when there is none or
-    it is damaged (truncated, garbled): a damaged entry is deleted, to be computed again."""
+    it is damaged (truncated, garbled, or a folder under an entry's name): a damaged entry is removed, to be
+    computed again (a folder stayed, and the new entry's rename onto it stopped the whole run)."""
     from facerec3d.io import load_scan, scan_stem
 
     face_file, fail_file = stored.with_suffix(".npz"), stored.with_suffix(".fail")
@@ -132,14 +134,18 @@ def _read_cache(stored: Path, path: str | Path) -> Outcome | None:
             face = load_scan(face_file)
             return Outcome(str(path), face.replace(meta=face.meta.replace(path=str(path), scan_id=scan_stem(path))),
                            cached=True)
-        if not fail_file.is_file():
-            return None
-        if reason := fail_file.read_text(encoding="utf-8"):
-            return Outcome(str(path), None, reason, cached=True)
+        if fail_file.is_file():
+            if reason := fail_file.read_text(encoding="utf-8"):
+                return Outcome(str(path), None, reason, cached=True)
+        elif not (os.path.lexists(face_file) or os.path.lexists(fail_file)):
+            return None  # no entry (nothing removed: another worker may be writing it now)
     except (FaceRec3DError, OSError, UnicodeDecodeError):
         pass
     for damaged in (face_file, fail_file):
-        damaged.unlink(missing_ok=True)
+        if damaged.is_dir() and not damaged.is_symlink():
+            shutil.rmtree(damaged, ignore_errors=True)
+        else:
+            damaged.unlink(missing_ok=True)
     return None
 
 
@@ -156,7 +162,10 @@ def _write_cache(stored: Path, outcome: Outcome) -> None:
             save_scan(outcome.face, tmp)
         else:
             tmp.write_text(outcome.error, encoding="utf-8")
-        os.replace(tmp, stored.with_suffix(suffix))
+        try:
+            os.replace(tmp, stored.with_suffix(suffix))
+        except IsADirectoryError:
+            pass  # a folder under the entry's name that could not be removed: this scan goes uncached, the run on
     finally:
         tmp.unlink(missing_ok=True)
 
