@@ -1375,6 +1375,8 @@ def metrics(scores, fmt, higher_is_better, out, overwrite, bootstrap, seed):
     """Every figure, plot and report of an evaluation from SCORES, a score file written by any system."""
     import hashlib
 
+    import numpy as np
+
     from facerec3d.evaluation.provenance import provenance
     from facerec3d.evaluation.report import claim_run_folder, write_run
     from facerec3d.evaluation.scorefile import read_score_matrix
@@ -1388,8 +1390,12 @@ def metrics(scores, fmt, higher_is_better, out, overwrite, bootstrap, seed):
     info = {"scores": str(source), "scores_sha256": hashlib.sha256(source.read_bytes()).hexdigest(), "format": fmt,
             "score_direction": "higher is better" if higher_is_better else "lower is better (negated)",
             "n_gallery": int(m.S.shape[1]), "provenance": provenance(rerun)}
+    # a probe compared with none of its subject's templates (an all-vs-all run's scores.txt has no line for a scan
+    # against itself, so a person's only scan has none) had no mate to find, as in the run that wrote the file
+    own = np.asarray(m.probe_ids)[:, None] == np.asarray(m.gallery_ids)[None, :]
+    mateless = own.any(axis=1) & ~(own & ~np.isnan(m.S)).any(axis=1)
     _print_metrics(write_run(out, m.S, m.probe_ids, m.probe_labels, m.gallery_ids, info, bootstrap=bootstrap,
-                             seed=seed))
+                             seed=seed, mateless=mateless))
     click.echo(f"report: {Path(out) / 'report.html'}")
 
 
