@@ -651,6 +651,7 @@ def evaluate(data, method, method_config, train, model, out, overwrite, protocol
     _check_cascade(cascade)
     if model and click.get_current_context().get_parameter_source("method") is ParameterSource.COMMANDLINE:
         raise InputError(f"{model}: a saved model brings its own method: give --model or --method, not both")
+    _model_or_train(model, train)
     if train:
         shared = {r.subject for r in open_dataset(train).records} & {r.subject for r in open_dataset(data).records}
         if shared:
@@ -669,6 +670,15 @@ def evaluate(data, method, method_config, train, model, out, overwrite, protocol
         click.echo(f"no comparison made: {m.get('n_gallery', 0)} gallery faces enrolled, {m.get('n_processed', 0)} "
                    f"probes processed (the reasons: {Path(out) / 'probes.csv'})", err=True)
         sys.exit(1)
+
+
+def _model_or_train(model, train) -> None:
+    """A saved model is trained already: with --train too, one would be silently ignored; refused before the
+    training set or the data is read (trained_matcher refuses it too)."""
+    if model and train:
+        from facerec3d.errors import InputError
+
+        raise InputError(f"{model}: a saved model is trained already: give --model or --train, not both")
 
 
 @main.command()
@@ -699,6 +709,7 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
     scans that fail are recorded (failures to enrol) and the batch goes on; exit code 1 when every scan failed.
     With --server, upload them to a gallery service (--jobs at once)."""
     _local_only(server, gallery, "method", "method_config", "train", "model", "config_file", "cache", "scheduler")
+    _model_or_train(model, train)
     if server:
         from facerec3d.gallery.service import scan_records
 
