@@ -666,6 +666,7 @@ def evaluate(data, method, method_config, train, model, out, overwrite, protocol
     _check_cascade(cascade)
     if model and click.get_current_context().get_parameter_source("method") is ParameterSource.COMMANDLINE:
         raise InputError(f"{model}: a saved model brings its own method: give --model or --method, not both")
+    _model_or_train(model, train)
     if train:
         shared = {r.subject for r in open_dataset(train).records} & {r.subject for r in open_dataset(data).records}
         if shared:
@@ -684,6 +685,15 @@ def evaluate(data, method, method_config, train, model, out, overwrite, protocol
         click.echo(f"no comparison made: {m.get('n_gallery', 0)} gallery faces enrolled, {m.get('n_processed', 0)} "
                    f"probes processed (the reasons: {Path(out) / 'probes.csv'})", err=True)
         sys.exit(1)
+
+
+def _model_or_train(model, train) -> None:
+    """A saved model is trained already: with --train too, one would be silently ignored; refused before the
+    training set or the data is read (trained_matcher refuses it too)."""
+    if model and train:
+        from facerec3d.errors import InputError
+
+        raise InputError(f"{model}: a saved model is trained already: give --model or --train, not both")
 
 
 @main.command()
@@ -714,6 +724,7 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
     scans that fail are recorded (failures to enrol) and the batch goes on; exit code 1 when every scan failed.
     With --server, upload them to a gallery service (--jobs at once)."""
     _local_only(server, gallery, "method", "method_config", "train", "model", "config_file", "cache", "scheduler")
+    _model_or_train(model, train)
     if server:
         from facerec3d.gallery.service import scan_records
 
@@ -1402,6 +1413,8 @@ def metrics(scores, fmt, higher_is_better, out, overwrite, bootstrap, seed):
     """Every figure, plot and report of an evaluation from SCORES, a score file written by any system."""
     import hashlib
 
+    import numpy as np
+
     from facerec3d.evaluation.provenance import provenance
     from facerec3d.evaluation.report import claim_run_folder, write_run
     from facerec3d.evaluation.scorefile import read_score_matrix
@@ -1415,8 +1428,12 @@ def metrics(scores, fmt, higher_is_better, out, overwrite, bootstrap, seed):
     info = {"scores": str(source), "scores_sha256": hashlib.sha256(source.read_bytes()).hexdigest(), "format": fmt,
             "score_direction": "higher is better" if higher_is_better else "lower is better (negated)",
             "n_gallery": int(m.S.shape[1]), "provenance": provenance(rerun)}
+    # a probe compared with none of its subject's templates (an all-vs-all run's scores.txt has no line for a scan
+    # against itself, so a person's only scan has none) had no mate to find, as in the run that wrote the file
+    own = np.asarray(m.probe_ids)[:, None] == np.asarray(m.gallery_ids)[None, :]
+    mateless = own.any(axis=1) & ~(own & ~np.isnan(m.S)).any(axis=1)
     _print_metrics(write_run(out, m.S, m.probe_ids, m.probe_labels, m.gallery_ids, info, bootstrap=bootstrap,
-                             seed=seed))
+                             seed=seed, mateless=mateless))
     click.echo(f"report: {Path(out) / 'report.html'}")
 
 

@@ -612,6 +612,20 @@ def test_evaluate_refuses_a_model_with_another_method_and_warns_of_training_on_t
     assert "warning: " in r.output and "3 of its subjects" in r.output and "flatters" in r.output
 
 
+def test_a_saved_model_with_a_training_set_is_refused_in_one_line(tmp_path):
+    """`evaluate DATA --model FILE --train DIR` ignored --train without a word (the docs give them as alternatives,
+    and --model with --method is refused); enroll did too. Both refuse it, before anything is read or made."""
+    model, data, train = tmp_path / "model.npz", tmp_path / "data", tmp_path / "train"
+    model.write_bytes(b"not read: refused before")
+    data.mkdir(), train.mkdir()
+    for args in (["evaluate", str(data), "--out", str(tmp_path / "x")],
+                 ["enroll", str(data), "--gallery", str(tmp_path / "g.sqlite")]):
+        r = CliRunner().invoke(main, [*args, "--model", str(model), "--train", str(train)])
+        assert r.exit_code == 2 and r.output == f"error: {model}: a saved model is trained already: give --model " \
+            "or --train, not both\n", r.output
+    assert not (tmp_path / "x").exists() and not (tmp_path / "g.sqlite").exists()
+
+
 def test_reading_an_empty_file_as_a_gallery_leaves_it_empty(tmp_path):
     """`gallery e.sqlite list` on a 0-byte file made it a 57 KB store and listed nothing, exit 0."""
     empty = tmp_path / "e.sqlite"

@@ -654,6 +654,34 @@ def test_rank1_all_counts_probes_of_subjects_that_failed_to_enrol(data, tmp_path
     assert m["rank1"] == 1.0 and m["rank1_all"] == pytest.approx(2 / 3)
 
 
+
+def test_all_vs_all_takes_a_person_with_one_scan_as_not_enrolled(data, tmp_path):
+    """all-vs-all leaves a scan out of its own search, so the probe of a person with one scan has no mate: it was
+    a rank-1 miss (rank 3, mated score -inf; rank-1 80 % though every probe with a mate ranked 1). It is a search
+    of a person not enrolled, as in the other protocols: out of rank-1, still a non-mated search."""
+    S = np.array([[np.nan, -1.0, -5.0], [-1.0, np.nan, -4.0], [-3.0, -4.0, np.nan]])
+    m = summarize(S, ["a", "a", "b"], ["a", "a", "b"], mateless=[False, False, True])
+    assert m["rank1"] == 1.0 and m["rank1_all"] == 1.0 and m["n_ranked"] == 2 and m["n_nonmated"] == 3
+    from facerec3d.evaluation.run import evaluate
+
+    manifest = tmp_path / "m.csv"
+    kept = [k for k in range(6) if k != 3]  # the second subject keeps one scan
+    manifest.write_text("path,subject\n" + "".join(f"{data['scans'][k]},{data['subjects'][k]}\n" for k in kept))
+    m = evaluate(manifest, "icp", tmp_path / "run", protocol="all-vs-all", jobs=1, cache=data["cache"],
+                 progress=False, bootstrap=0)
+    assert m["n_probes"] == 5 and m["n_ranked"] == 4 and m["rank1"] == 1.0 and m["rank1_all"] == 1.0
+    assert m["n_nonmated"] == 5
+    alone = [row for row in csv.DictReader(open(tmp_path / "run" / "probes.csv"))
+             if row["subject"] == data["subjects"][2]]
+    assert len(alone) == 1 and alone[0]["rank"] == alone[0]["mated_score"] == "" and alone[0]["nonmated_score"]
+    # the run's scores.txt (no line for a scan against itself) gives the same figures again
+    r = CliRunner().invoke(main, ["metrics", str(tmp_path / "run" / "scores.txt"), "--out", str(tmp_path / "again"),
+                                  "--bootstrap", "0"])
+    assert r.exit_code == 0, r.output
+    again = json.loads((tmp_path / "again" / "metrics.json").read_text())
+    assert {k: again[k] for k in ("n_ranked", "rank1", "n_nonmated")} == {"n_ranked": 4, "rank1": 1.0, "n_nonmated": 5}
+
+
 # ---------------------------------------------------------------- 8. unique output names
 def test_preprocess_gives_every_input_its_own_output(data, tmp_path):
     assert unique_stems(["d1/face.ply", "d2/face.ply", "d1/face-2.ply", "d3/FACE.abs.gz"]) == \

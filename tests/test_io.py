@@ -172,17 +172,27 @@ LM3 = "3D landmark file\n# a comment\n2 landmarks:\nNose tip\n  1.5 2.5 -3.5\n\n
 
 
 def test_lm3_landmarks(tmp_path, cap):
-    (tmp_path / "bs001_E_HAPPY_0.lm3").write_text(LM3)
+    save_scan(cap, tmp_path / "bs001_E_HAPPY_0.bnt")
+    (tmp_path / "bs001_E_HAPPY_0.lm3").write_text(LM3)  # Bosphorus's landmarks beside it
     lm = load_landmarks_lm3(tmp_path / "bs001_E_HAPPY_0.lm3")
     assert list(lm) == ["Nose tip", "Chin middle"]
     np.testing.assert_array_equal(lm["Nose tip"], [1.5, 2.5, -3.5])
-    save_scan(cap, tmp_path / "bs001_E_HAPPY_0.bnt")  # a scan without landmarks leaves the .lm3 alone
     s = load_scan(tmp_path / "bs001_E_HAPPY_0.bnt")
     np.testing.assert_array_equal(s.landmarks["Chin middle"], [0, -60, -20])
     save_scan(s, tmp_path / "copy.bnt")  # writes copy.lm3 beside it
     back = load_scan(tmp_path / "copy.bnt")
     assert back.landmarks.keys() == lm.keys()
     np.testing.assert_array_equal(back.landmarks["Nose tip"], lm["Nose tip"])
+
+
+def test_writing_a_bnt_without_landmarks_removes_a_stale_lm3(tmp_path, cap):
+    """`convert A.npz out.bnt` wrote out.lm3; converting a scan without landmarks to out.bnt then left it, and
+    out.bnt read back with A's landmarks. The .lm3 is replaced by a scan with landmarks, removed by one without."""
+    save_scan(cap.replace(landmarks={"nose_tip": np.array([1.0, 2.0, -940.0])}), tmp_path / "out.bnt")
+    save_scan(cap.replace(landmarks={"chin": np.array([0.0, -9.0, -950.0])}), tmp_path / "out.bnt")
+    assert list(load_scan(tmp_path / "out.bnt").landmarks) == ["chin"]
+    save_scan(cap, tmp_path / "out.bnt")
+    assert not (tmp_path / "out.lm3").exists() and not load_scan(tmp_path / "out.bnt").landmarks
 
 
 @pytest.mark.parametrize("text, reason", [
@@ -194,10 +204,10 @@ def test_lm3_landmarks(tmp_path, cap):
     ("3D landmark file\n2 landmarks:\nA\n1 2 3\nA\n1 2 3\n", "given twice"),
 ])
 def test_malformed_lm3(tmp_path, cap, text, reason):
+    save_scan(cap, tmp_path / "f.bnt")
     (tmp_path / "f.lm3").write_text(text)
     with pytest.raises(ScanFormatError, match=reason):
         load_landmarks_lm3(tmp_path / "f.lm3")
-    save_scan(cap, tmp_path / "f.bnt")
     with pytest.raises(ScanFormatError, match="f.lm3"):
         load_scan(tmp_path / "f.bnt")
 

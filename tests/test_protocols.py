@@ -166,3 +166,19 @@ def test_a_manifest_and_a_csv_score_file_with_a_byte_order_mark_are_read(tmp_pat
                                      b"a,a,p1,1\nb,a,p1,0\n")
     m = read_score_matrix(tmp_path / "s.csv", "csv")
     assert list(m.gallery_ids) == ["a", "b"] and m.S.tolist() == [[1.0, 0.0]]
+
+
+def test_a_manifest_label_gives_the_bosphorus_type_of_a_file_of_any_name(tmp_path):
+    """A manifest `path,subject,label` whose labels are Bosphorus scan types (N_N, E_SURPRISE) was refused by the
+    bosphorus protocol as having no scan types (with no expression column every record had no category), though the
+    docs say such a label is enough: the label types the scan, its gallery is the N scan, its probes the subsets."""
+    touch(tmp_path, ["p0_a.bnt", "p0_b.bnt", "p1_a.bnt", "p1_c.bnt", "p1_d.bnt"])
+    (tmp_path / "m.csv").write_text("path,subject,label\np0_a.bnt,p0,N_N\np0_b.bnt,p0,E_HAPPY\n"
+                                    "p1_c.bnt,p1,E_SURPRISE\np1_a.bnt,p1,N_N\np1_d.bnt,p1,YR_R10\n")
+    ds = open_dataset(tmp_path / "m.csv")
+    sp = split(ds, "bosphorus")
+    assert sorted(ds.records[i].scan_id for i in sp.gallery) == ["p0_a", "p1_a"]
+    names = {k: sorted(ds.records[sp.probes[j]].scan_id for j in v) for k, v in sp.subsets.items()}
+    assert names == {"non-neutral": ["p0_b", "p1_c"], "pose": ["p1_d"], "E": ["p0_b", "p1_c"], "YR": ["p1_d"],
+                     "E_HAPPY": ["p0_b"], "E_SURPRISE": ["p1_c"]}
+    assert [r.expression for r in ds.records] == ["neutral", "non-neutral", "non-neutral", "neutral", None]

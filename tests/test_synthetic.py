@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from facerec3d.datasets.catalog import DatasetError, open_dataset
+from facerec3d.datasets.catalog import DatasetError, open_dataset, scan_record
 from facerec3d.datasets.synthetic import DatasetConfig, FaceScanner, ScannerConfig, ScanSpec, write_dataset
 from facerec3d.io import load_scan
 
@@ -49,6 +49,9 @@ def test_dataset_layouts_round_trip(tmp_path, fmt, layout):
     manifest = write_dataset(tmp_path, DatasetConfig(subjects=2, scans=3, scanner=SMALL), fmt)
     rows = list(csv.DictReader(open(manifest)))
     assert len(rows) == 6
+    # each file's name says the subject its manifest row does (bnt files were named bs000_... for subject 04200:
+    # a file enrolled on its own was another person)
+    assert [scan_record(tmp_path / r["path"]).subject for r in rows] == [r["subject"] for r in rows]
     manifest.unlink()  # the folder alone must be recognised by its layout
     ds = open_dataset(tmp_path)
     assert ds.layout == layout and len(ds) == 6 and len(ds.subjects) == 2

@@ -11,7 +11,8 @@ owners and point facerec3d at them in place; nothing is copied.
   are expressions, YR / PR / CR are poses, O occlusions.
 - Manifest CSV: columns `path,subject` and optional `expression`
   (`neutral` / `non-neutral` or a finer label), `role` (`gallery` / `probe`),
-  `session` (default: the FRGC session folder in the path, if any) and `pose` (a head-pose label, reported as
+  `session` (default: the FRGC session folder in the path, if any), `label` (a Bosphorus scan type such as
+  `E_HAPPY` types the scan as a bsNNN_TYPE_SUB_k name would) and `pose` (a head-pose label, reported as
   its own probe subsets; empty or `frontal` is frontal); scans may be
   depth frames (`.png`, `.tif`) with an `intrinsics.json` beside them or above; relative paths are relative to the manifest's folder.
 """
@@ -218,7 +219,12 @@ def read_manifest(path: str | Path) -> Dataset:
         if role not in (None, "gallery", "probe"):
             raise DatasetError(f"{path}, line {line}: role must be gallery or probe, not {role!r}")
         kind = None if expression is None else ("neutral" if expression == "neutral" else "expression")
-        if BOSPHORUS_PATTERN.match(p.name) and (label or "").split("_")[0].upper() not in BOSPHORUS_KINDS:
+        if (typed := BOSPHORUS_KINDS.get((label or "").split("_")[0].upper())) is not None:
+            # a Bosphorus scan type as the label (N_N, E_HAPPY, YR_R10): its category, as a bsNNN_TYPE_SUB_k name
+            # gives it; the bosphorus protocol reads the category, so a file of any name can be typed so
+            kind = typed
+            expression = expression or {"neutral": "neutral", "expression": "non-neutral"}.get(typed)
+        elif BOSPHORUS_PATTERN.match(p.name):
             named = _bosphorus_record(p)  # a Bosphorus file: its type and label from its name, as in its folder
             kind, label, expression = named.kind, named.label, expression or named.expression
         session = (row.get("session") or "").strip() or _frgc_session(p)

@@ -25,7 +25,8 @@
   manifest label such as E_HAPPY) is refused: its gallery would be nonsense.
 - `roles`: a manifest's `role` column says gallery or probe.
 - `all-vs-all`: every scan is in the gallery and is a probe; a scan is never
-  compared with itself.
+  compared with itself, so a person's only scan has no mate: its probe is a
+  search of a person not enrolled (evaluation.run marks it `mateless`).
 """
 
 from __future__ import annotations

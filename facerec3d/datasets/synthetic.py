@@ -641,6 +641,13 @@ def subject_id(subject: int) -> str:
     return f"{subject + 4200:05d}"
 
 
+def bosphorus_id(subject: int) -> str:
+    """Bosphorus-style subject id (`bs000`) of a synthetic subject number: the `bnt` layout's, in its file names
+    and its manifest alike. A Bosphorus name's subject keeps its `bs` (catalog.BOSPHORUS_PATTERN), so a name cannot
+    carry `04200`; with another id in the manifest, a file enrolled on its own would be another person."""
+    return f"bs{subject:03d}"
+
+
 # ------------------------------------------------------------------ datasets
 #: The scan plan of each subject, repeated as needed: (kind, expression).
 SCAN_PLAN = ("neutral", "neutral", "expression", "yaw", "expression", "pose", "neutral", "expression")
@@ -724,7 +731,7 @@ def scan_path(spec: ScanSpec, index: int, fmt: str) -> str:
         kind, sub = BOSPHORUS_TYPES[spec.expression]
         if spec.expression == "neutral" and abs(spec.yaw) >= 10:
             kind, sub = "YR", f"{'R' if spec.yaw > 0 else 'L'}{int(round(abs(spec.yaw) / 10) * 10)}"
-        bs = f"bs{spec.subject:03d}"
+        bs = bosphorus_id(spec.subject)
         return f"{bs}/{bs}_{kind}_{sub}_{spec.seed}.bnt"
     if fmt == "png":  # a depth camera's frames, one folder per person; the names repeat across people
         kind = SCAN_PLAN[spec.seed % len(SCAN_PLAN)]
@@ -752,7 +759,8 @@ def write_dataset(out: str | Path, cfg: DatasetConfig = DatasetConfig(), fmt: st
     frames (`png`: `<subject>/front_1.png`, ... with `intrinsics.json` at the top), with `manifest.csv`.
 
     The manifest has `path,subject,expression,label,session,pose` (as
-    `facerec3d` datasets read it: the FRGC semester folder, empty for `bnt`;
+    `facerec3d` datasets read it: the subject as the file name gives it, `04200` or for `bnt` `bs000`;
+    the FRGC semester folder, empty for `bnt`;
     the head-pose label of the ±yaw_probe scans, `yaw`, and of the free-pose
     scans, `yaw-pitch-roll`, empty for near-frontal ones) plus the ground
     truth: head pose (degrees) and the fiducials in scan coordinates (mm), and
@@ -782,7 +790,8 @@ def write_dataset(out: str | Path, cfg: DatasetConfig = DatasetConfig(), fmt: st
             write_depth_image(out / rel, scan_to_frame(s.scan, camera), camera)
         else:
             save_scan(s.scan, out / rel)
-        row = {"path": rel, "subject": s.scan.meta.subject, "expression": s.scan.meta.expression,
+        row = {"path": rel, "subject": bosphorus_id(spec.subject) if fmt == "bnt" else s.scan.meta.subject,
+               "expression": s.scan.meta.expression,
                "label": s.scan.meta.extra["label"], "session": scan_session(spec) if fmt == "abs" else "",
                "pose": POSE_LABELS.get(SCAN_PLAN[spec.seed % len(SCAN_PLAN)], ""), "yaw": f"{spec.yaw:.3f}",
                "pitch": f"{spec.pitch:.3f}", "roll": f"{spec.roll:.3f}"}

@@ -186,14 +186,25 @@ def _operating_point(fmr: np.ndarray, tar: np.ndarray, far: float) -> int:
     return int(allowed[np.argmax(tar[allowed])])
 
 
+def _flags(mask, n: int) -> np.ndarray:
+    """A per-probe boolean mask, its length checked."""
+    mask = np.asarray(mask, dtype=bool)
+    if mask.shape != (n,):
+        raise ValueError(f"mateless: need {n} booleans, got shape {mask.shape}")
+    return mask
+
+
 class Searches(NamedTuple):
     """Each probe (row of S) searched against the gallery's subjects (a subject scores its best template).
 
-    ranked:   the probe's subject is in the gallery (a mated search);
+    ranked:   the probe's subject is in the gallery (a mated search), unless the probe is `mateless`;
     rank:     its true subject's rank (ties pessimistic, see cmc); 0 when not ranked;
     mated:    the true subject's score (NaN when not ranked);
     nonmated: the best score of any other subject (NaN when the gallery has no other subject).
-    Comparisons not made (NaN) count as -inf.
+    Comparisons not made (NaN) count as -inf. mateless: optional booleans, the probes whose subject's only gallery
+    templates are the probe itself, left out of the comparison (all-vs-all, a person with one scan): they have no
+    mate to find, so they are searches of a subject not enrolled (not ranked, non-mated only), as a probe of a
+    subject missing from the gallery is; a NaN alone cannot say so, as a mate not compared ranks last.
     """
 
     ranked: np.ndarray
@@ -202,7 +213,7 @@ class Searches(NamedTuple):
     nonmated: np.ndarray
 
 
-def search(S, probe_ids, gallery_ids, tiebreak=None) -> Searches:
+def search(S, probe_ids, gallery_ids, tiebreak=None, mateless=None) -> Searches:
     """Every probe's identification search: see `Searches`; ties as in `cmc`."""
     S, p, g = _matrix(S, probe_ids, gallery_ids)
     subjects, col_subject = np.unique(g, return_inverse=True)
@@ -214,7 +225,8 @@ def search(S, probe_ids, gallery_ids, tiebreak=None) -> Searches:
     order = np.argsort(col_subject, kind="stable")
     starts = np.searchsorted(col_subject[order], np.arange(subjects.size))
     best = np.maximum.reduceat(S[:, order], starts, axis=1) if n else np.empty((0, subjects.size))
-    ranked = np.isin(p, subjects)
+    enrolled = np.isin(p, subjects)
+    ranked = enrolled if mateless is None else enrolled & ~_flags(mateless, n)
     true = np.minimum(np.searchsorted(subjects, p), subjects.size - 1)
     rows = np.arange(n)
     b_true = best[rows, true][:, None]
@@ -228,14 +240,14 @@ def search(S, probe_ids, gallery_ids, tiebreak=None) -> Searches:
         best_t = np.maximum.reduceat(T[:, order], starts, axis=1) if n else best
         at_least = (best > b_true) | ((best == b_true) & (best_t >= best_t[rows, true][:, None]))
     rank = np.where(ranked, at_least.sum(axis=1), 0)  # includes the true subject itself
-    others = np.where(ranked[:, None] & (np.arange(subjects.size) == true[:, None]), np.nan, best)
+    others = np.where(enrolled[:, None] & (np.arange(subjects.size) == true[:, None]), np.nan, best)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a row with no other subject: NaN
         nonmated = np.nanmax(others, axis=1)
     return Searches(ranked, rank, np.where(ranked, best[rows, true], np.nan), nonmated)
 
 
-def cmc(S, probe_ids, gallery_ids, max_rank: int | None = None, tiebreak=None) -> np.ndarray:
+def cmc(S, probe_ids, gallery_ids, max_rank: int | None = None, tiebreak=None, mateless=None) -> np.ndarray:
     """Cumulative match characteristic: element k-1 is the rank-k identification rate.
 
     A gallery may hold several templates per subject: each gallery SUBJECT is
@@ -250,7 +262,7 @@ def cmc(S, probe_ids, gallery_ids, max_rank: int | None = None, tiebreak=None) -
     left. ``max_rank`` defaults to the number of gallery subjects; longer
     curves are padded with 1.0.
     """
-    s = search(S, probe_ids, gallery_ids, tiebreak)
+    s = search(S, probe_ids, gallery_ids, tiebreak, mateless)
     if not s.ranked.any():
         raise ValueError("no probe's subject is in the gallery")
     n = np.unique(np.asarray(gallery_ids).astype(str)).size if max_rank is None else int(max_rank)
@@ -268,7 +280,7 @@ def rank_k(cmc_curve, k: int) -> float:
     return float(cmc_curve[min(k, cmc_curve.size) - 1])
 
 
-def open_set(S, probe_ids, gallery_ids, tiebreak=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def open_set(S, probe_ids, gallery_ids, tiebreak=None, mateless=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Open-set identification curve (NIST FRVT): (FPIR, FNIR, thresholds), thresholds decreasing from +inf.
 
     Every probe is a non-mated search by its best non-mated score (the best
@@ -280,7 +292,7 @@ def open_set(S, probe_ids, gallery_ids, tiebreak=None) -> tuple[np.ndarray, np.n
     share of mated searches that do not. Raises ValueError without mated or
     non-mated searches.
     """
-    r = _rows(S, probe_ids, gallery_ids, tiebreak)
+    r = _rows(S, probe_ids, gallery_ids, tiebreak, mateless=mateless)
     fpir, tpir, thr = _open_curve(r, np.ones(r.subject.size))
     if fpir is None:
         raise ValueError("need mated and non-mated searches")
@@ -302,10 +314,10 @@ class _Rows(NamedTuple):
     open_row: np.ndarray
 
 
-def _rows(S, probe_ids, gallery_ids, tiebreak=None, failed_ids: Sequence = ()) -> _Rows:
+def _rows(S, probe_ids, gallery_ids, tiebreak=None, failed_ids: Sequence = (), mateless=None) -> _Rows:
     S, p, g = _matrix(S, probe_ids, gallery_ids)
     subjects, index = np.unique(np.r_[p, np.asarray(failed_ids, dtype=str)], return_inverse=True)
-    s = search(S, p, g, tiebreak)
+    s = search(S, p, g, tiebreak, mateless)
     made = ~np.isnan(S)
     rows, cols = np.nonzero(made)
     scores, genuine, row = _descending(S[rows, cols], p[rows] == g[cols], rows)
@@ -377,7 +389,8 @@ def _plain(value: float) -> float | None:
 
 
 def summarize(S, probe_ids, gallery_ids, n_failed: int = 0, tiebreak=None, *, failed_ids: Sequence | None = None,
-              identification: bool = True, bootstrap: int = 0, seed: int = 0, unenrolled: Sequence = ()) -> dict:
+              identification: bool = True, bootstrap: int = 0, seed: int = 0, unenrolled: Sequence = (),
+              mateless=None) -> dict:
     """Headline metrics of one run, as a JSON-ready dict of plain ints/floats.
 
     Keys: ``n_probes`` (processed + failed), ``n_processed`` (rows of S),
@@ -405,6 +418,8 @@ def summarize(S, probe_ids, gallery_ids, n_failed: int = 0, tiebreak=None, *, fa
     make no impostor comparisons, so FMR and EER are unaffected. Likewise the
     processed probes of the ``unenrolled`` subjects (whose gallery scans all
     failed to enrol, FTE) are misses there: they add to n_failed in that share.
+    ``mateless`` marks the probes whose subject's only gallery template is the probe itself (see `search`):
+    not ranked, like probes of subjects not enrolled, and not misses either.
 
     ``failed_ids`` (the subjects of the failed probes; n_failed is then their
     number) lets the bootstrap draw failures with their subject; without
@@ -427,7 +442,7 @@ def summarize(S, probe_ids, gallery_ids, n_failed: int = 0, tiebreak=None, *, fa
         n_failed = failed_ids.size
     if n_failed < 0:
         raise ValueError(f"n_failed must be >= 0, got {n_failed}")
-    r = _rows(S, p, g, tiebreak, () if failed_ids is None else failed_ids)
+    r = _rows(S, p, g, tiebreak, () if failed_ids is None else failed_ids, mateless)
     n_processed = S.shape[0]
     out: dict = {
         "n_probes": n_processed + int(n_failed),

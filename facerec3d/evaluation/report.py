@@ -286,7 +286,7 @@ def _jsonable(value):
     raise TypeError(f"{type(value).__name__} is not JSON serialisable")
 
 
-def _curves(S, probe_ids, gallery_ids, tiebreak) -> dict[str, np.ndarray]:
+def _curves(S, probe_ids, gallery_ids, tiebreak, mateless) -> dict[str, np.ndarray]:
     """ROC (collinear points dropped), DET, CMC and open-set arrays; empty where undefined."""
     genuine, impostor = split_scores(S, probe_ids, gallery_ids)
     empty = np.empty(0)
@@ -295,18 +295,19 @@ def _curves(S, probe_ids, gallery_ids, tiebreak) -> dict[str, np.ndarray]:
     if genuine.size and impostor.size:
         out["roc_fmr"], out["roc_tar"], _ = roc(genuine, impostor, drop_intermediate=True)
         out["det_fmr"], out["det_fnmr"], _ = det(genuine, impostor)
-    if np.isin(probe_ids, gallery_ids).any():
-        out["cmc"] = cmc(S, probe_ids, gallery_ids, tiebreak=tiebreak)
+    if (np.isin(probe_ids, gallery_ids) & ~mateless).any():
+        out["cmc"] = cmc(S, probe_ids, gallery_ids, tiebreak=tiebreak, mateless=mateless)
         try:
-            out["openset_fpir"], out["openset_fnir"], _ = open_set(S, probe_ids, gallery_ids, tiebreak)
+            out["openset_fpir"], out["openset_fnir"], _ = open_set(S, probe_ids, gallery_ids, tiebreak, mateless)
         except ValueError:  # no non-mated search (a single gallery subject)
             pass
     return out
 
 
-def _write_probes(path: Path, S, probe_ids, probe_labels, gallery_ids, tiebreak, failed) -> None:
-    """probes.csv: each processed probe's search (rank empty when its subject is not enrolled), then the failed."""
-    s = search(S, probe_ids, gallery_ids, tiebreak)
+def _write_probes(path: Path, S, probe_ids, probe_labels, gallery_ids, tiebreak, failed, mateless) -> None:
+    """probes.csv: each processed probe's search (rank empty when its subject is not enrolled, or its only
+    template is itself), then the failed."""
+    s = search(S, probe_ids, gallery_ids, tiebreak, mateless)
     with open(path, "w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)
         w.writerow(["probe", "subject", "status", "rank", "mated_score", "nonmated_score"])
@@ -333,6 +334,7 @@ def write_run(
     bootstrap: int = BOOTSTRAP,
     seed: int = 0,
     unenrolled: Sequence[str] = (),
+    mateless=None,
 ) -> dict:
     """Evaluate score matrix S (higher = more similar) and write the run folder.
 
@@ -346,7 +348,9 @@ def write_run(
     comparisons a figure counts (FRGC's ROC I / II / III): each is summarised
     without identification figures. bootstrap: replicates for the 95 %
     intervals (0: none), drawn with numpy.random.default_rng(seed). unenrolled: the subjects whose gallery
-    scans all failed to enrol; their probes are misses in the failures-as-misses (*_all) figures.
+    scans all failed to enrol; their probes are misses in the failures-as-misses (*_all) figures. mateless:
+    booleans over the processed probes, those whose subject's only gallery scan is the probe itself, not compared
+    (all-vs-all, a person with one scan): searches of a subject not enrolled (see metrics.search).
 
     metrics.json is one JSON object (strict JSON: undefined metrics are null):
       - every entry of ``metrics`` as given (e.g. ``method``, ``protocol``,
@@ -366,6 +370,7 @@ def write_run(
     probe_ids, gallery_ids = np.asarray(probe_ids).astype(str), np.asarray(gallery_ids).astype(str)
     tiebreak = None if tiebreak is None else np.asarray(tiebreak, dtype=float)
     failed = [(str(label), str(subject)) for label, subject in (failed or [])]
+    mateless = np.zeros(S.shape[0], bool) if mateless is None else np.asarray(mateless, dtype=bool)
     subject_of = dict(failed)
     groups = {name: np.asarray(mask) for name, mask in (subsets or {}).items()}
     for name, mask in groups.items():
@@ -384,6 +389,7 @@ def write_run(
         """summarize over some rows, with their failures as a count or as failed labels."""
         Sm = kw.pop("S", S)[rows]
         kw.setdefault("unenrolled", unenrolled)
+        kw.setdefault("mateless", mateless[rows])
         if isinstance(failures, (int, np.integer)):
             return summarize(Sm, probe_ids[rows], gallery_ids, int(failures), tb(rows), bootstrap=bootstrap, seed=seed,
                              **kw)
@@ -407,8 +413,8 @@ def write_run(
     out.mkdir(parents=True, exist_ok=True)
     write_scores(out / "scores.txt", S, probe_ids, probe_labels, gallery_ids)
     (out / "metrics.json").write_text(text + "\n", encoding="utf-8")
-    _write_probes(out / "probes.csv", S, probe_ids, probe_labels, gallery_ids, tiebreak, failed)
-    curves = {name: _curves(S[m], probe_ids[m], gallery_ids, tb(m)) for name, m in {"all probes": every, **groups}.items()}
+    _write_probes(out / "probes.csv", S, probe_ids, probe_labels, gallery_ids, tiebreak, failed, mateless)
+    curves = {name: _curves(S[m], probe_ids[m], gallery_ids, tb(m), mateless[m]) for name, m in {"all probes": every, **groups}.items()}
     np.savez(out / "curves.npz", **curves["all probes"])
     plot_roc({n: (c["roc_fmr"], c["roc_tar"]) for n, c in curves.items() if c["roc_fmr"].size}, out / "roc.png")
     plot_det({n: (c["det_fmr"], c["det_fnmr"]) for n, c in curves.items() if c["det_fmr"].size}, out / "det.png")

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections import Counter
 from collections.abc import Callable, Mapping
 from typing import Any
 from dataclasses import asdict
@@ -152,8 +153,13 @@ def _evaluate(engine: Engine, matcher, training: dict, dataset, sp, data: str | 
     if search is not None:
         recall = search.recall(rows, [recs[p].subject for p in probes], [recs[i].subject for i in enrolled])
         info_cascade = {"cascade": {**asdict(cascade), "recall": recall}}
+    mateless = None
     if sp.exclude_self:
         S[np.equal.outer(probes, enrolled)] = np.nan
+        # a probe whose person's only enrolled scan is itself has no mate to find: a search of a person not
+        # enrolled (as in the other protocols), not a rank-1 miss
+        scans, enrolled_set = Counter(recs[i].subject for i in enrolled), set(enrolled)
+        mateless = [scans[recs[i].subject] - (i in enrolled_set) == 0 for i in probes]
     # first use: the gallery loaded into the workers and one probe each; steady state: the other batches.
     # match_ms: per comparison, the probe's preparation (features, normals: once per probe) not included
     timings["match_first_s"] = spent[0][0]
@@ -197,4 +203,4 @@ def _evaluate(engine: Engine, matcher, training: dict, dataset, sp, data: str | 
                      [recs[i].subject for i in enrolled], info, tiebreak=tiebreak, subsets=masks,
                      subset_failures=subset_failures, failed=[(dataset.label(recs[i]), recs[i].subject) for i in failed_probes],
                      masks=pair_masks, bootstrap=bootstrap, seed=seed,
-                     unenrolled=sorted({recs[i].subject for i in sp.gallery if i not in faces} - {recs[i].subject for i in enrolled}))
+                     mateless=mateless, unenrolled=sorted({recs[i].subject for i in sp.gallery if i not in faces} - {recs[i].subject for i in enrolled}))

@@ -63,7 +63,8 @@ def read_bnt(path: str | Path) -> FaceScan:
 def write_bnt(scan: FaceScan, path: str | Path, texture_name: str = "") -> None:
     """Write a grid scan as Bosphorus `.bnt` (u, v written as 0) and its landmarks, if any, as a sibling `.lm3`.
 
-    Invalid pixels get X = Y = Z = zmin = -1e9 mm (lower still if a valid Z is not above that).
+    Invalid pixels get X = Y = Z = zmin = -1e9 mm (lower still if a valid Z is not above that). A scan without
+    landmarks removes a `.lm3` already beside the path: read_bnt would give it another scan's landmarks.
     """
     xyz, valid = range_image(scan, path)
     rows, cols = valid.shape
@@ -77,8 +78,11 @@ def write_bnt(scan: FaceScan, path: str | Path, texture_name: str = "") -> None:
     with open(path, "wb") as f:
         f.write(header)
         np.ascontiguousarray(blocks[:, ::-1], dtype="<f8").tofile(f)
+    lm3 = Path(path).with_suffix(".lm3")
     if scan.landmarks:
-        write_lm3(scan.landmarks, Path(path).with_suffix(".lm3"))
+        write_lm3(scan.landmarks, lm3)
+    else:
+        lm3.unlink(missing_ok=True)
 
 
 def load_landmarks_lm3(path: str | Path) -> dict[str, np.ndarray]:

@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from facerec3d.config import DEFAULT_METHOD  # noqa: F401 - the default method, beside the methods
 from facerec3d.datasets.catalog import open_dataset
-from facerec3d.errors import FaceRec3DError
+from facerec3d.errors import FaceRec3DError, InputError
 from facerec3d.matching.base import Matcher, Template
 from facerec3d.matching.methods import METHODS as SINGLE_METHODS
 from facerec3d.matching.methods import method_class
@@ -111,6 +111,8 @@ def trained_matcher(method: str, options: Mapping[str, Any] | None = None, *, tr
     line what the matcher learnt from, with a warning when that is few people; and, when the matcher learns
     nothing, that `train` was not used (it is not read)."""
     if model is not None:
+        if train is not None:  # a saved model is trained already: --train would be silently ignored
+            raise InputError(f"{model}: a saved model is trained already: give --model or --train, not both")
         return load_matcher(model), {"model": str(model)}
     say = echo or (lambda line: None)
     source = getattr(options, "source", None)  # the settings file, when read with config.read_settings
