@@ -192,10 +192,9 @@ def synth(out, subjects, scans, fmt, seed, first_subject, expressions, expressio
 def _capped_jobs(ctx, param, value: int | None) -> int | None:
     """--jobs, at most `workers.JOBS_PER_CORE` processes per core, saying so once when it caps: more only queue for
     the cores (--jobs 100000 opened a process pool each and ran out of open files)."""
-    from facerec3d.workers import JOBS_PER_CORE
+    from facerec3d.workers import JOBS_PER_CORE, useful_jobs
 
-    limit = JOBS_PER_CORE * (os.cpu_count() or 1)
-    if value is not None and value > limit:
+    if value is not None and (limit := useful_jobs(value)) < value:
         click.echo(f"warning: --jobs {value}: using {limit} processes ({JOBS_PER_CORE} per core; more would only wait "
                    "for a core)", err=True)
         return limit
@@ -1413,8 +1412,7 @@ def metrics(scores, fmt, higher_is_better, out, overwrite, bootstrap, seed):
     """Every figure, plot and report of an evaluation from SCORES, a score file written by any system."""
     import hashlib
 
-    import numpy as np
-
+    from facerec3d.evaluation.metrics import mates_not_compared
     from facerec3d.evaluation.provenance import provenance
     from facerec3d.evaluation.report import claim_run_folder, write_run
     from facerec3d.evaluation.scorefile import read_score_matrix
@@ -1428,12 +1426,8 @@ def metrics(scores, fmt, higher_is_better, out, overwrite, bootstrap, seed):
     info = {"scores": str(source), "scores_sha256": hashlib.sha256(source.read_bytes()).hexdigest(), "format": fmt,
             "score_direction": "higher is better" if higher_is_better else "lower is better (negated)",
             "n_gallery": int(m.S.shape[1]), "provenance": provenance(rerun)}
-    # a probe compared with none of its subject's templates (an all-vs-all run's scores.txt has no line for a scan
-    # against itself, so a person's only scan has none) had no mate to find, as in the run that wrote the file
-    own = np.asarray(m.probe_ids)[:, None] == np.asarray(m.gallery_ids)[None, :]
-    mateless = own.any(axis=1) & ~(own & ~np.isnan(m.S)).any(axis=1)
     _print_metrics(write_run(out, m.S, m.probe_ids, m.probe_labels, m.gallery_ids, info, bootstrap=bootstrap,
-                             seed=seed, mateless=mateless))
+                             seed=seed, mateless=mates_not_compared(m.S, m.probe_ids, m.gallery_ids)))
     click.echo(f"report: {Path(out) / 'report.html'}")
 
 

@@ -194,6 +194,16 @@ def _flags(mask, n: int) -> np.ndarray:
     return mask
 
 
+def mates_not_compared(S, probe_ids, gallery_ids) -> np.ndarray:
+    """(n_probes,) booleans: the probes whose subject is in the gallery but compared with none of its templates
+    (NaN in every such cell). In an all-vs-all run's scores.txt a scan is never compared with itself, so a person's
+    only scan has no line against its subject: such a probe had no mate to find, as in the run that wrote the file
+    (`search`'s `mateless`), and `facerec3d metrics` on that file gives the run's figures again."""
+    S, p, g = _matrix(S, probe_ids, gallery_ids)
+    own = p[:, None] == g[None, :]
+    return own.any(axis=1) & ~(own & ~np.isnan(S)).any(axis=1)
+
+
 class Searches(NamedTuple):
     """Each probe (row of S) searched against the gallery's subjects (a subject scores its best template).
 
