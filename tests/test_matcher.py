@@ -291,8 +291,8 @@ def test_every_method_names_what_it_takes_when_given_the_wrong_type(name):
                 call()
         with pytest.raises(InputError, match=f"^scan must be a FaceScan, not {type(bad).__name__}$"):
             matcher.enroll(bad)
-    for threshold in ("1.0", float("nan"), None):
-        with pytest.raises(InputError, match="^threshold must be a number, not "):
+    for threshold in ("1.0", float("nan"), None, float("inf")):
+        with pytest.raises(InputError, match="^a verification threshold is a finite number, not "):
             matcher.verify(points, template, threshold)
     if name in ("pca", "morph-id"):  # a vector of another length: the Euclidean distance broadcast it silently
         with pytest.raises(InputError, match="a probe of 1 features against templates of 4"):

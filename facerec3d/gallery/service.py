@@ -12,8 +12,6 @@ cache, a folder the workers share); without an engine, everything runs in this p
 from __future__ import annotations
 
 import hashlib
-import math
-import numbers
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from os import PathLike
@@ -27,7 +25,7 @@ from facerec3d.gallery.cascade import CascadeConfig
 from facerec3d.gallery.engine import Engine
 from facerec3d.gallery.store import AlreadyEnrolled, Entry, GalleryError, GalleryStore
 from facerec3d.io import scan_stem
-from facerec3d.matching.base import Matcher, Template, check_k
+from facerec3d.matching.base import Matcher, Template, check_k, check_threshold
 from facerec3d.preprocess.batch import preprocess_file, printable
 from facerec3d.preprocess.pipeline import PreprocessConfig
 from facerec3d.scan import FaceScan
@@ -268,13 +266,11 @@ def verify_scan(store: GalleryStore, probe: str | Path, claim: str, *, threshold
     A depth frame is read with `intrinsics` (a JSON file) when given."""
     if not isinstance(claim, str) or not claim:  # entries(subject=None) would be every entry: anyone's claim
         raise GalleryError(f"{store.path}: a verification claims a subject (a non-empty text), not {claim!r}")
-    if threshold is not None and (isinstance(threshold, bool) or not isinstance(threshold, numbers.Real)
-                                  or not math.isfinite(threshold)):  # NaN accepted nothing, '1' failed in >=
-        raise InputError(f"a verification threshold is a finite number, not {threshold!r}")
+    if threshold is not None:  # before any work
+        threshold = check_threshold(threshold)
     matcher = store.matcher()
     if threshold is None:
-        threshold = gallery_threshold(store, matcher.name)
-    threshold = float(threshold)
+        threshold = float(gallery_threshold(store, matcher.name))
     claimed = [e.id for e in store.entries(subject=claim)]
     if not claimed:
         raise GalleryError(f"{store.path}: subject {claim!r} is not enrolled")

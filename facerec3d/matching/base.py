@@ -142,11 +142,12 @@ def probe_type(cls: type) -> type:
 
 
 def check_threshold(threshold: Any) -> float:
-    """A verification threshold: a number, not NaN (every score compares False with NaN: all rejected silently; a
-    string gave Python's TypeError)."""
+    """A verification threshold: a finite number (every score compares False with NaN: all rejected silently; an
+    infinite one accepts all or none; a string gave Python's TypeError). `Matcher.verify` and
+    `gallery.service.verify_scan` take it through here."""
     if isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.integer, np.floating)) \
-            or np.isnan(threshold):
-        raise InputError(f"threshold must be a number, not {threshold!r}")
+            or not np.isfinite(threshold):
+        raise InputError(f"a verification threshold is a finite number, not {threshold!r}")
     return float(threshold)
 
 
