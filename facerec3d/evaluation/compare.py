@@ -16,6 +16,7 @@ from scipy.stats import binomtest
 from facerec3d.evaluation.plots import plot_cmc, plot_det, plot_roc
 from facerec3d.errors import InputError
 from facerec3d.evaluation.report import RATES, SET_COLUMNS, claim_run_folder, format_value, with_interval, write_pages
+from facerec3d.evaluation.scorefile import text_file
 
 ALPHA = 0.05  # significance level of the McNemar tests
 #: The files compare_runs writes: a folder holding any of them holds a comparison.
@@ -68,16 +69,11 @@ def rank1_hits(run_dir: str | Path) -> dict[str, bool | None] | None:
     path = Path(run_dir) / "probes.csv"
     if not path.is_file():
         return None
-    try:
-        with open(path, newline="", encoding="utf-8") as f:
-            reader = csv.DictReader(f)
-            if missing := [c for c in ("probe", "rank", "status") if c not in (reader.fieldnames or [])]:
-                raise InputError(f"{path}: not a run's probes file: no column {', '.join(missing)}")
-            return {r["probe"]: (r["rank"] == "1") if r["rank"] or r["status"] == "failed" else None for r in reader}
-    except UnicodeDecodeError as e:
-        raise InputError(f"{path}: not UTF-8 text (a byte {e.object[e.start:e.start + 1]!r})") from None
-    except csv.Error as e:  # a field over the csv module's limit, a NUL byte
-        raise InputError(f"{path}: not a readable CSV file ({e})") from None
+    with text_file(path, newline="") as f:  # not UTF-8, or not CSV: one line naming the file
+        reader = csv.DictReader(f)
+        if missing := [c for c in ("probe", "rank", "status") if c not in (reader.fieldnames or [])]:
+            raise InputError(f"{path}: not a run's probes file: no column {', '.join(missing)}")
+        return {r["probe"]: (r["rank"] == "1") if r["rank"] or r["status"] == "failed" else None for r in reader}
 
 
 def mcnemar(a: dict[str, bool | None], b: dict[str, bool | None]) -> dict:

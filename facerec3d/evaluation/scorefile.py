@@ -92,7 +92,7 @@ def read_score_rows(path: str | Path) -> ScoreRows:
 def _read_columns(path: str | Path, n: int) -> list[np.ndarray]:
     """The n white-space separated columns of a score file (str, the last float); blank lines skipped."""
     cols: list[list] = [[] for _ in range(n)]
-    with _text(path) as f:
+    with text_file(path) as f:
         for line_no, line in enumerate(f, 1):
             parts = line.split()
             if not parts:
@@ -111,15 +111,18 @@ def _read_columns(path: str | Path, n: int) -> list[np.ndarray]:
 
 
 @contextmanager
-def _text(path: str | Path, newline: str | None = None):
-    """A score file opened as UTF-8 text, a byte-order mark (Excel's "CSV UTF-8") skipped; a byte that is not UTF-8 is
-    one InputError naming the file."""
+def text_file(path: str | Path, newline: str | None = None):
+    """A score file (or a run's CSV file) opened as UTF-8 text, a byte-order mark (Excel's "CSV UTF-8") skipped; a
+    byte that is not UTF-8, or a line the csv module cannot read inside the block (a field over its limit, a NUL
+    byte), is one InputError naming the file."""
     try:
         with open(path, encoding="utf-8-sig", newline=newline) as f:
             yield f
     except UnicodeDecodeError as e:
         raise InputError(f"{path}: not UTF-8 text (a byte {e.object[e.start:e.start + 1]!r}): save it as UTF-8") \
             from None
+    except csv.Error as e:
+        raise InputError(f"{path}: not a readable CSV file ({e})") from None
 
 
 def read_scores(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -149,22 +152,19 @@ class ScoreMatrix(NamedTuple):
 
 
 def _csv_columns(path: str | Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray, np.ndarray]:
-    with _text(path, newline="") as f:
-        try:
-            reader = csv.DictReader(f)
-            header = reader.fieldnames or []
-            chosen = {role: next((c for c in names if c in header), None) for role, names in CSV_COLUMNS.items()}
-            missing = [f"{role} ({' or '.join(CSV_COLUMNS[role])})" for role, c in chosen.items()
-                       if c is None and role != "model_label"] + ([] if "score" in header else ["score"])
-            if missing:
-                raise InputError(f"{path}: not a bob CSV score file: no column for {', '.join(missing)}")
-            rows = []
-            for r in reader:  # an empty id would be a subject or probe called "" (and no field of bob4)
-                if empty := next((c for role, c in chosen.items() if role != "model_label" and not r[c]), None):
-                    raise InputError(f"{path}:{reader.line_num}: the {empty} field is empty")
-                rows.append(r)
-        except csv.Error as e:  # a field over the csv module's limit, a NUL byte
-            raise InputError(f"{path}: not a readable CSV file ({e})") from None
+    with text_file(path, newline="") as f:
+        reader = csv.DictReader(f)
+        header = reader.fieldnames or []
+        chosen = {role: next((c for c in names if c in header), None) for role, names in CSV_COLUMNS.items()}
+        missing = [f"{role} ({' or '.join(CSV_COLUMNS[role])})" for role, c in chosen.items()
+                   if c is None and role != "model_label"] + ([] if "score" in header else ["score"])
+        if missing:
+            raise InputError(f"{path}: not a bob CSV score file: no column for {', '.join(missing)}")
+        rows = []
+        for r in reader:  # an empty id would be a subject or probe called "" (and no field of bob4)
+            if empty := next((c for role, c in chosen.items() if role != "model_label" and not r[c]), None):
+                raise InputError(f"{path}:{reader.line_num}: the {empty} field is empty")
+            rows.append(r)
     try:
         score = np.array([float(r["score"]) for r in rows])
     except (TypeError, ValueError) as e:
