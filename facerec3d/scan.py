@@ -172,7 +172,7 @@ class FaceScan:
             return float("nan")
         sample = np.arange(n) if n <= 20000 else np.random.default_rng(0).choice(n, 20000, replace=False)
         if self.grid is not None and self.grid_shape is not None:
-            d2 = _nearest_neighbour_pixel_d2(self.points, self.grid, self.index_image(), sample)
+            d2 = _nearest_neighbour_pixel_d2(self.points, self.grid, np.sort(sample))  # in memory order: the same set
             if np.isfinite(d2).any():
                 return float(np.sqrt(np.median(d2[np.isfinite(d2)])))
         from scipy.spatial import cKDTree
@@ -262,14 +262,22 @@ class FaceScan:
 
 
 @njit(cache=True)
-def _nearest_neighbour_pixel_d2(points, grid, index, sample):  # pragma: no cover - compiled
+def _nearest_neighbour_pixel_d2(points, grid, sample):  # pragma: no cover - compiled
     """For each sampled point, the squared distance (mm²) to the nearest point among its 8 neighbouring pixels
-    (inf without one)."""
-    rows, cols = index.shape
+    (inf without one). The pixels' point indices are laid out over the rows and columns that hold points only
+    (a cropped face fills a small window of a camera frame's grid)."""
+    r0, c0, r1, c1 = grid[0, 0], grid[0, 1], grid[0, 0], grid[0, 1]
+    for i in range(grid.shape[0]):
+        r0, r1 = min(r0, grid[i, 0]), max(r1, grid[i, 0])
+        c0, c1 = min(c0, grid[i, 1]), max(c1, grid[i, 1])
+    rows, cols = r1 - r0 + 1, c1 - c0 + 1
+    index = np.full((rows, cols), -1, np.int32)
+    for i in range(grid.shape[0]):
+        index[grid[i, 0] - r0, grid[i, 1] - c0] = i
     out = np.full(sample.shape[0], np.inf)
     for k in range(sample.shape[0]):
         i = sample[k]
-        r, c = grid[i, 0], grid[i, 1]
+        r, c = grid[i, 0] - r0, grid[i, 1] - c0
         for dr in range(-1, 2):
             for dc in range(-1, 2):
                 rr, cc = r + dr, c + dc

@@ -291,6 +291,12 @@ def test_every_method_names_what_it_takes_when_given_the_wrong_type(name):
                 call()
         with pytest.raises(InputError, match=f"^scan must be a FaceScan, not {type(bad).__name__}$"):
             matcher.enroll(bad)
+    scan = FaceScan(points=points)  # a scan where a template belongs: an AttributeError deep in each matcher
+    for call in (lambda: matcher.score(scan, scan), lambda: matcher.scores(scan, [template, scan]),
+                 lambda: matcher.identify(scan, [scan]), lambda: matcher.verify(scan, scan, 0.0)):
+        with pytest.raises(InputError, match=rf"^{name} scores a probe against gallery templates \(from enroll\(\)\), "
+                                             "not FaceScan$"):
+            call()
     for threshold in ("1.0", float("nan"), None, float("inf")):
         with pytest.raises(InputError, match="^a verification threshold is a finite number, not "):
             matcher.verify(points, template, threshold)

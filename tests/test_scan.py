@@ -106,3 +106,35 @@ def test_rigid_fit_recovers_motion_and_handles_reflection():
     # a mirrored target: the raw SVD solution has det -1; the fit must stay a rotation
     R3, _ = rigid_fit(P, P * [1, 1, -1])
     assert np.isclose(np.linalg.det(R3), 1.0)
+
+
+def test_resolution_of_a_grid_is_the_median_spacing_to_the_nearest_of_8_neighbouring_pixels():
+    """`FaceScan.resolution` on a grid: the median over (a seeded sample of 20,000 of) the points of the distance to
+    the nearest point among its 8 neighbouring pixels, here against NumPy's shifted images. The face is a window
+    of a large frame with holes, so the compiled search's own window and its edges are exercised."""
+    rng = np.random.default_rng(3)
+    h, w = 200, 180
+    rows, cols = np.mgrid[0:h, 0:w]
+    xyz = np.dstack([cols * 0.9, rows * 1.1, 5 * np.sin(cols / 17.0) + rng.normal(0, 0.3, (h, w))])
+    valid = rng.random((h, w)) > 0.25
+    valid[:, :3] = False  # empty columns at the window's left
+    frame = np.full((480, 640, 3), np.nan)
+    frame[100:100 + h, 300:300 + w] = xyz
+    big = np.zeros((480, 640), bool)
+    big[100:100 + h, 300:300 + w] = valid
+    scan = FaceScan.from_range_image(frame, big)
+    assert scan.n_points > 20000  # the sampled path
+
+    index = scan.index_image()
+    pad = np.pad(index, 1, constant_values=-1)
+    best = np.full(scan.n_points, np.inf)
+    r, c = scan.grid[:, 0] + 1, scan.grid[:, 1] + 1
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            j = pad[r + dr, c + dc]
+            if dr or dc:
+                d2 = np.where(j >= 0, ((scan.points[np.maximum(j, 0)] - scan.points) ** 2).sum(axis=1), np.inf)
+                best = np.minimum(best, d2)
+    sample = np.random.default_rng(0).choice(scan.n_points, 20000, replace=False)
+    expected = np.sqrt(np.median(best[sample][np.isfinite(best[sample])]))
+    assert scan.resolution() == expected

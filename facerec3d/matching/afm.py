@@ -234,10 +234,10 @@ class AFMMatcher(Matcher[Template]):
         return np.where(shared > 0, mean, np.inf)
 
     def scores(self, probe: FaceScan | Template, templates: Sequence[Template]) -> tuple[np.ndarray, None]:
-        p = self._probe(probe)
+        p = self._probe(probe, templates)
         if not templates:
             return np.zeros(0), None
         return -self.distances(p, templates), None
 
     def score(self, probe: FaceScan | Template, template: Template) -> float:
-        return float(-self.distances(self._probe(probe), [template])[0])
+        return float(-self.distances(self._probe(probe, [template]), [template])[0])

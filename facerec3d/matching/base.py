@@ -132,6 +132,15 @@ def check_probe(matcher: "Matcher", probe: Any) -> Any:
     return probe
 
 
+def check_templates(matcher: "Matcher", templates: Any) -> None:
+    """InputError unless `templates` are gallery templates (`enroll` makes them): a scan given as the template
+    reached each matcher's arrays as an AttributeError. Only a sequence is looked at (an iterator is left unread)."""
+    for t in templates if isinstance(templates, Sequence) else ():
+        if not isinstance(t, Template):
+            raise InputError(f"{matcher.name} scores a probe against gallery templates (from enroll()), not "
+                             f"{type(t).__name__}")
+
+
 def probe_type(cls: type) -> type:
     """The probe type `P` a matcher class declares (`Matcher[ProbeData]`); Template, `prepare`'s default, when none."""
     for klass in cls.__mro__:
@@ -320,9 +329,11 @@ class Matcher(ABC, Generic[P]):
         """The probe-side representation of a scan (by default its gallery template)."""
         return self.enroll(scan)
 
-    def _probe(self, probe: FaceScan | P) -> P:
-        """A probe as `prepare` makes it, from a scan or an already prepared probe (`check_probe`: every matcher's
-        score and scores come through here, so the check is in one place)."""
+    def _probe(self, probe: FaceScan | P, templates: Sequence[Template] = ()) -> P:
+        """A probe as `prepare` makes it, from a scan or an already prepared probe (`check_probe`), the templates
+        it is to be scored against checked (`check_templates`): every matcher's score and scores come through
+        here, so the checks are in one place."""
+        check_templates(self, templates)
         return self.prepare(probe) if isinstance(probe, FaceScan) else check_probe(self, probe)
 
     @abstractmethod
@@ -331,7 +342,7 @@ class Matcher(ABC, Generic[P]):
 
     def scores(self, probe: FaceScan | P, templates: Sequence[Template]) -> tuple[np.ndarray, np.ndarray | None]:
         """(scores (n,), tiebreak (n,) or None) of a probe against many templates."""
-        p = self._probe(probe)
+        p = self._probe(probe, templates)
         return np.array([self.score(p, t) for t in templates], dtype=np.float64), None
 
     def identify(self, probe: FaceScan | P, gallery: Sequence[Template], k: int = 5) -> list[tuple[int, float]]:

@@ -83,7 +83,7 @@ class CurvatureMatcher(Matcher[CurvatureMap]):
         return self.curvature_map(scan)
 
     def scores(self, probe: FaceScan | CurvatureMap, templates: Sequence[Template]) -> tuple[np.ndarray, None]:
-        p = self._probe(probe)
+        p = self._probe(probe, templates)
         if not templates:
             return np.zeros(0), None
         S = np.stack([t.arrays["shape_index"] for t in templates])

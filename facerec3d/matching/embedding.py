@@ -311,7 +311,7 @@ class EmbeddingMatcher(Matcher[np.ndarray]):
         return self._stacked[1]
 
     def scores(self, probe: FaceScan | np.ndarray, templates: Sequence[Template]) -> tuple[np.ndarray, None]:
-        p = self._probe(probe)
+        p = self._probe(probe, templates)
         if not templates:
             return np.zeros(0), None
         G = self._gallery(templates)

@@ -172,7 +172,7 @@ class FusionMatcher(GalleryNormalised, Matcher[list]):
 
     def partial_scores(self, probe: FaceScan | list, templates: Sequence[Template]) -> np.ndarray:
         """The members' shard scores, stacked (Σ members' shard_rows, n)."""
-        p = self._probe(probe)
+        p = self._probe(probe, templates)
         parts = [unpack(t) for t in templates]
         return np.concatenate([shard_scores(m, p[k], [q[k] for q in parts]) for k, m in enumerate(self.members)])
 

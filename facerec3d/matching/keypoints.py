@@ -168,9 +168,9 @@ class KeypointMatcher(Matcher[Template]):
                                t.arrays["points"].astype(np.float64), t.arrays["descriptors"], self.config)
 
     def score(self, probe: FaceScan | Template, template: Template) -> float:
-        return float(self._match(self._probe(probe), template)[0])
+        return float(self._match(self._probe(probe, [template]), template)[0])
 
     def scores(self, probe: FaceScan | Template, templates: Sequence[Template]) -> tuple[np.ndarray, np.ndarray]:
-        p = self._probe(probe)
+        p = self._probe(probe, templates)
         out = np.array([self._match(p, t) for t in templates], dtype=np.float64).reshape(-1, 2)
         return out[:, 0], -out[:, 1]

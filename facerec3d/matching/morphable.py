@@ -300,7 +300,7 @@ class MorphIDMatcher(Matcher[np.ndarray]):
         return vector_similarity(p, G, self.config.distance)
 
     def scores(self, probe: FaceScan | np.ndarray, templates: Sequence[Template]) -> tuple[np.ndarray, None]:
-        p = self._probe(probe)
+        p = self._probe(probe, templates)
         if not templates:
             return np.zeros(0), None
         return self._similarity(p, np.stack([t.arrays["identity"] for t in templates])), None

@@ -170,7 +170,7 @@ class RegionICPMatcher(GalleryNormalised, Matcher[RegionProbe]):
 
     def partial_scores(self, probe: FaceScan | RegionProbe, templates: Sequence[Template]) -> np.ndarray:
         """Each region's −MSE (mm²) against each template: (regions, templates); −inf for a missing region."""
-        p = self._probe(probe)
+        p = self._probe(probe, templates)
         S = np.full((len(p.regions), len(templates)), -np.inf)
         galleries = [GalleryIndex.from_template(t) for t in templates]
         for k, region in enumerate(p.regions):

@@ -194,10 +194,10 @@ class _SubspaceMatcher(Matcher[np.ndarray]):
                                  self.scale_ if self.config.distance == "mahalanobis" else None)
 
     def score(self, probe: FaceScan | np.ndarray, template: Template) -> float:
-        return float(self._similarity(self._probe(probe), template.arrays["features"][None])[0])
+        return float(self._similarity(self._probe(probe, [template]), template.arrays["features"][None])[0])
 
     def scores(self, probe: FaceScan | np.ndarray, templates: Sequence[Template]) -> tuple[np.ndarray, None]:
-        p = self._probe(probe)
+        p = self._probe(probe, templates)
         if not templates:
             return np.zeros(0), None
         return self._similarity(p, np.stack([t.arrays["features"] for t in templates])), None

@@ -33,7 +33,7 @@ from numba import njit
 
 from facerec3d.geometry.normals import estimate_normals
 from facerec3d.geometry.transforms import rigid_from_covariance
-from facerec3d.matching.base import Matcher, Template, check_face
+from facerec3d.matching.base import Matcher, Template, check_face, check_templates
 from facerec3d.matching.icp.config import ICPConfig
 from facerec3d.matching.icp.index import GalleryIndex, closest_point, nearest_within
 from facerec3d.scan import MIRRORED, FaceScan
@@ -181,11 +181,12 @@ class ICPMatcher(Matcher[ProbeData]):
         return ProbeData.build(scan.points, scan.normals, scan.colors, self.config, grid=scan.grid,
                                grid_shape=scan.grid_shape)
 
-    def _probe(self, probe: FaceScan | ProbeData | Template) -> ProbeData:
+    def _probe(self, probe: FaceScan | ProbeData | Template, templates: Sequence[Template] = ()) -> ProbeData:
         """A probe as `prepare` makes it, from a scan, a prepared probe, or one saved and read back (Template)."""
         if isinstance(probe, Template):
+            check_templates(self, templates)
             return ProbeData.from_template(probe)
-        return super()._probe(probe)
+        return super()._probe(probe, templates)
 
     @staticmethod
     def gallery_points(template: Template) -> np.ndarray:
@@ -195,7 +196,7 @@ class ICPMatcher(Matcher[ProbeData]):
     def align(self, probe: FaceScan | ProbeData | Template, template: Template,
               init: tuple[np.ndarray, np.ndarray] | None = None) -> ICPResult:
         """The full ICP result of a probe against a gallery template."""
-        return _align(self._probe(probe), GalleryIndex.from_template(template), self._params, init)
+        return _align(self._probe(probe, [template]), GalleryIndex.from_template(template), self._params, init)
 
     def score(self, probe: FaceScan | ProbeData | Template, template: Template) -> float:
         return -self.align(probe, template).mse
@@ -203,7 +204,7 @@ class ICPMatcher(Matcher[ProbeData]):
     def scores(self, probe: FaceScan | ProbeData | Template,
                templates: Sequence[Template]) -> tuple[np.ndarray, np.ndarray]:
         """(−MSE, correspondence count) against each template; one compiled call per template."""
-        return self.data_scores(self._probe(probe), [GalleryIndex.from_template(t) for t in templates])
+        return self.data_scores(self._probe(probe, templates), [GalleryIndex.from_template(t) for t in templates])
 
     def data_scores(self, probe: ProbeData, galleries: Sequence[GalleryIndex]) -> tuple[np.ndarray, np.ndarray]:
         """(−MSE mm², correspondence count) of probe data (e.g. one region of a face) against gallery indices."""
