@@ -1245,9 +1245,9 @@ def train_embedding(out, identities, scans, sensors, identity_profiles, epochs, 
               "429 [default: half of concurrency + queue].")
 @click.option("--timeout", default=60.0, show_default=True, type=click.FloatRange(min=0, min_open=True),
               callback=lambda ctx, param, v: _finite(v, "--timeout"), help="Time limit per request (s); past it, 504.")
-@click.option("--max-upload-mb", default=64.0, show_default=True, type=click.FloatRange(min=0, min_open=True),
+@click.option("--max-upload-mb", default=64.0, show_default=True, type=click.FloatRange(min=0.01),
               callback=lambda ctx, param, v: _finite(v, "--max-upload-mb"),
-              help="Largest upload (MiB); larger get 413.")
+              help="Largest upload (MiB, at least 0.01: a form's own parts take ~4 KiB); larger get 413.")
 @click.option("--max-points", default=5_000_000, show_default=True, type=click.IntRange(min=1),
               help="Largest scan (points); larger get 413.")
 @click.option("--audit", type=click.Path(dir_okay=False),

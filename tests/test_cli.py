@@ -80,7 +80,8 @@ def test_a_threshold_that_is_no_number_is_refused(tmp_path):
     ("--port", "70000", "not in the range 0<=x<=65535"), ("--port", "-1", "not in the range 0<=x<=65535"),
     ("--timeout", "nan", "must be a finite number, not nan"), ("--timeout", "inf", "must be a finite number"),
     ("--timeout", "-1", "not in the range x>0"), ("--timeout", "0", "not in the range x>0"),
-    ("--max-upload-mb", "nan", "must be a finite number, not nan"), ("--max-upload-mb", "0", "not in the range x>0"),
+    ("--max-upload-mb", "nan", "must be a finite number, not nan"), ("--max-upload-mb", "0", "not in the range x>=0.01"),
+    ("--max-upload-mb", "1e-9", "not in the range x>=0.01"),  # int(1e-9 MiB) was a 0-byte limit: every upload 413
     ("--queue", "-5", "not in the range x>=0"), ("--per-key", "-1", "not in the range x>=1"),
     ("--per-key", "0", "not in the range x>=1"), ("--max-points", "-1", "not in the range x>=1"),
     ("--concurrency", "-1", "not in the range x>=1")])
