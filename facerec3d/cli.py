@@ -242,19 +242,21 @@ def _clear_dataset(out: Path, overwrite: bool) -> None:
 @friendly
 def view(file, output, with_face):
     """Render scan FILE (shaded depth) before and after preprocessing, landmarks marked, to a PNG."""
+    import numpy as np
+
     from facerec3d.io import load_scan
     from facerec3d.jit import compilation_notice
     from facerec3d.preprocess import Preprocessor, gridify, landmarks_in_input_frame
-    from facerec3d.render import check_image_path, render
+    from facerec3d.render import check_image_path, render, shaded
 
     check_image_path(output)  # before the work: a format or folder that cannot be written says so at once
     with compilation_notice(lambda line: click.echo(line, err=True)):  # a cold Numba cache: ~30 s, said first
         scan = gridify(load_scan(file))
-        if min(scan.grid_shape) < 2:  # the shading takes depth differences along rows and columns
-            from facerec3d.errors import InputError
+        if min(scan.grid_shape) < 2 or not np.isfinite(shaded(scan)).any():  # shading: depth differences along
+            from facerec3d.errors import InputError                           # rows and columns
 
             raise InputError(f"{file}: too thin to draw (a grid of {scan.grid_shape[0]}×{scan.grid_shape[1]} points; "
-                             "the shaded drawing needs at least 2×2)")
+                             "the shaded drawing needs points with neighbours along both rows and columns)")
         panels = [(f"{Path(file).name} (raw)", scan)]
         if with_face:
             from facerec3d.errors import FailureToAcquire

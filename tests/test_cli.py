@@ -262,15 +262,16 @@ def test_synth_refuses_scans_its_readers_would_refuse(tmp_path, size, fmt):
     assert not (tmp_path / "x").exists()
 
 
-@pytest.mark.parametrize("shape", [(1, 500), (500, 1), "two points"])
+@pytest.mark.parametrize("shape", [(1, 500), (500, 1), "two points", "a line"])
 def test_view_refuses_a_scan_too_thin_to_draw(tmp_path, shape):
     """`view --raw` of a 1×500 or 500×1 depth map, or of two points, was a ValueError from np.gradient ("Shape of
-    array too small"): one line naming the file."""
+    array too small"), and points along a diagonal line an empty picture: one line naming the file."""
     import numpy as np
 
     scan = tmp_path / "thin.npy"
+    line = np.c_[np.arange(50.0), np.arange(50.0), np.full(50, -1000.0)]  # each pixel's neighbours diagonal only
     np.save(scan, np.array([[0.0, 0.0, -1000.0], [1.0, 1.0, -1000.0]]) if shape == "two points"
-            else np.full(shape, -1000.0))
+            else line if shape == "a line" else np.full(shape, -1000.0))
     r = CliRunner().invoke(main, ["view", "--raw", str(scan), "-o", str(tmp_path / "v.png")])
     assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
     assert r.output.startswith(f"error: {scan}: too thin to draw (a grid of ")
