@@ -87,6 +87,22 @@ def test_ply_from_other_writers_float32_and_quads(tmp_path, byte_order):
     np.testing.assert_array_equal(s.points, [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
 
 
+def test_ply_face_of_no_corners_is_no_triangle_and_no_warning(tmp_path):
+    """A face line `0` (an empty vertex list) in an ASCII PLY printed plyfile's (NumPy loadtxt's) UserWarning
+    'input contained no data' after the result; it is read as no triangle, in silence."""
+    import warnings
+
+    (tmp_path / "e.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                                    "property float z\nelement face 2\nproperty list uchar int vertex_indices\n"
+                                    "end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n0\n")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        s = load_scan(tmp_path / "e.ply")
+    assert [str(w.message) for w in caught] == []
+    np.testing.assert_array_equal(s.points, [[0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    np.testing.assert_array_equal(s.mesh, [[0, 1, 2]])
+
+
 # ------------------------------------------------------------------ FRGC .abs
 def test_abs_with_unusual_rows_and_columns(tmp_path):
     scan = cap_image(7, 11, invalid=((3, 4), (6, 10)))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import io
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -79,7 +80,9 @@ def read_ply(path: str | Path) -> FaceScan:
     from plyfile import PlyData
 
     _check_ply_header(path)
-    with library_errors(path, "PLY file"):
+    with library_errors(path, "PLY file"), warnings.catch_warnings():
+        # an ASCII face of no corners (a line `0`) is no triangle: NumPy's loadtxt warns of its empty list
+        warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)
         try:  # fast: triangle lists memory-mapped
             ply = PlyData.read(str(path), known_list_len=TRIANGLES)
         except Exception:  # other polygons, or a corrupt file: read again element by element
