@@ -150,9 +150,10 @@ def test_no_small_file_makes_a_command_exceed_1_gib(tmp_path):
 
 
 def test_meshes_are_refused_before_a_library_reads_too_much(tmp_path, monkeypatch):
-    """trimesh parses a whole OBJ / OFF / STL at ~9× its size and plyfile allocates what a PLY header announces:
-    a file over MAX_MESH_BYTES, or a PLY header announcing more than MAX_POINTS vertices (more bytes' worth than
-    the file holds or not), is one line naming the file; files within the limits read."""
+    """trimesh parses a whole OFF / STL at ~9× its size and plyfile allocates what a PLY header announces:
+    a mesh file over MAX_MESH_BYTES, an OBJ of more than MAX_POINTS vertices, or a PLY header announcing more than
+    MAX_POINTS vertices (more bytes' worth than the file holds or not), is one line naming the file; files within
+    the limits read."""
     import facerec3d.io.mesh as mesh_io
     from facerec3d.errors import ScanFormatError
     from facerec3d.io import load_scan
@@ -165,6 +166,10 @@ def test_meshes_are_refused_before_a_library_reads_too_much(tmp_path, monkeypatc
     with pytest.raises(ScanFormatError, match=r"face\.obj.*absurd size: more than \d+ bytes"):
         load_scan(obj)
     monkeypatch.setattr(mesh_io, "MAX_POINTS", 50)
+    monkeypatch.setattr(mesh_io, "MAX_MESH_BYTES", obj.stat().st_size)
+    with pytest.raises(ScanFormatError) as e:  # an OBJ's vertices counted as they are read
+        load_scan(obj)
+    assert str(e.value) == f"{obj}: absurd size: more than 50 points"
     head = "ply\nformat binary_little_endian 1.0\nelement vertex {}\nproperty float x\nproperty float y\n" \
            "property float z\nend_header\n"
     ply = tmp_path / "cloud.ply"

@@ -288,6 +288,64 @@ def test_obj_vertices_are_kept_whatever_their_faces_texture_or_normals(tmp_path)
     np.testing.assert_array_equal(s.mesh, [[0, 1, 2], [1, 3, 2]])
 
 
+SQUARE = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\n"
+
+
+def test_obj_materials_keep_each_vertex_once_and_the_triangles(tmp_path, cap):
+    """A second `usemtl` split trimesh's mesh in two, each with every vertex: 8 points for a file's 4 and no
+    triangles (a textured face export read as twice its points, no mesh, which preprocessing failed). Each vertex
+    is one point, in order, and the faces of every material are the triangles."""
+    (tmp_path / "u.obj").write_text(SQUARE + "f 1 2 3\nusemtl m\nf 2 4 3\n")
+    s = load_scan(tmp_path / "u.obj")
+    np.testing.assert_array_equal(s.points, [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
+    np.testing.assert_array_equal(s.mesh, [[0, 1, 2], [1, 3, 2]])
+    save_scan(cap, tmp_path / "base.obj")
+    lines = (tmp_path / "base.obj").read_text().splitlines()
+    faces = [i for i, line in enumerate(lines) if line.startswith("f ")]
+    lines.insert(faces[len(faces) // 2], "usemtl b")
+    lines.insert(faces[0], "usemtl a")
+    (tmp_path / "mtl.obj").write_text("mtllib face.mtl\n" + "\n".join(lines) + "\n")
+    s = load_scan(tmp_path / "mtl.obj")
+    np.testing.assert_allclose(s.points, cap.points, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(s.mesh, cap.triangles())
+
+
+def test_obj_corners_naming_texture_and_normals_the_file_lacks_keep_every_vertex(tmp_path):
+    """`f 1/1/1 2/2/2 3/3/3` in a file without `vt` or `vn` records dropped the vertex no face uses (3 points of 4)."""
+    (tmp_path / "t.obj").write_text(SQUARE + "f 1/1/1 2/2/2 3/3/3\n")
+    s = load_scan(tmp_path / "t.obj")
+    np.testing.assert_array_equal(s.points, [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
+    np.testing.assert_array_equal(s.mesh, [[0, 1, 2]])
+
+
+def test_obj_relative_indices_polygons_comments_and_continued_lines(tmp_path):
+    """`-1` is the last vertex read before the face; a polygon is fanned from its first corner; `#` comments and
+    records continued with `\\` are read as the OBJ format says; faces of fewer than 3 corners are no triangle."""
+    (tmp_path / "r.obj").write_text("# a comment\nv 0 0 0\nv 1 0 0 # a vertex\nv 0 1 0\nf -3 -2 -1\no part\ng g1\n"
+                                    "s off\nv 1 \\\n 1 0\nf 1 2 4 3\nf 1 2\n")
+    s = load_scan(tmp_path / "r.obj")
+    np.testing.assert_array_equal(s.points, [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
+    np.testing.assert_array_equal(s.mesh, [[0, 1, 2], [0, 1, 3], [0, 3, 2]])
+
+
+@pytest.mark.parametrize("text, reason", [
+    (SQUARE + "f 1 2 0\n", "line 5: a face names vertex 0 (OBJ numbers vertices from 1)"),
+    (SQUARE + "f 1 2 9\n", "line 5: a face names vertex 9, the file has 4"),
+    ("v 0 0 0\nv 1 0 0\nf -1 -2 -3\n" + SQUARE, "line 3: a face names vertex -3, but only 2 come before it"),
+    (SQUARE + "f 1 2/1 x\n", "line 5: a face's vertex number is not a number: 'x'"),
+    ("v 0 0\n" + SQUARE, "line 1: a vertex needs 3 coordinates, x y z: 'v 0 0'"),
+    (SQUARE + "v 1 2 z\n", "line 5: a vertex coordinate is not a number: 'z'"),
+    (SQUARE + "f" + " 1" * 40000 + "\n", "line 5: a record longer than 65536 characters"),
+], ids=["vertex-0", "past-the-last", "relative-before-the-first", "not-a-number", "short-vertex", "bad-coordinate",
+        "long-line"])
+def test_obj_malformed_records_are_refused_naming_their_line(tmp_path, text, reason):
+    """`f 1 2 0` was read as the triangle [0, 1, 0], a short `v` line made the whole file 'no valid points'."""
+    (tmp_path / "bad.obj").write_text(text)
+    with pytest.raises(ScanFormatError) as e:
+        load_scan(tmp_path / "bad.obj")
+    assert str(e.value) == f"{tmp_path / 'bad.obj'}: {reason}"
+
+
 # ------------------------------------------------------------ text point clouds
 @pytest.mark.parametrize("name, text", [
     ("p.xyz", "# comment\n1 2 3\n\n4 5 6 7 8  # trailing comment\n"),

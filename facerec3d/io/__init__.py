@@ -5,7 +5,8 @@
 | .abs, .abs.gz | FRGC v2 range image (`abs`) | yes | yes |
 | .bnt (+ .lm3) | Bosphorus range image and landmarks (`bnt`) | yes | yes |
 | .ply | PLY mesh or point cloud, ASCII or binary, plyfile (`mesh`) | yes | yes |
-| .obj, .off, .stl | meshes and point clouds, trimesh (`mesh`) | yes | .obj |
+| .obj | meshes and point clouds, Wavefront OBJ (`mesh`) | yes | yes |
+| .off, .stl | meshes and point clouds, trimesh (`mesh`) | yes | no |
 | .xyz, .csv, .txt | text point clouds (`text`) | yes | no |
 | .npy, .npz | NumPy range images, depth maps, point sets (`arrays`) | yes | .npz |
 | .png, .tif, .tiff (+ intrinsics.json) | 16-bit depth frames of depth cameras (`depth`) | yes | no (`write_depth_image`) |
@@ -28,13 +29,13 @@ from facerec3d.io.arrays import read_numpy, write_npz
 from facerec3d.io.depth import Intrinsics, find_intrinsics, read_depth_image, write_depth_image
 from facerec3d.io.bnt import load_landmarks_lm3, read_bnt, write_bnt, write_lm3
 from facerec3d.io.common import scan_stem, scan_suffix
-from facerec3d.io.mesh import read_mesh, read_ply, write_obj, write_ply
+from facerec3d.io.mesh import read_mesh, read_obj, read_ply, write_obj, write_ply
 from facerec3d.io.text import read_text_points
 from facerec3d.scan import FaceScan
 
 READERS = {
     ".abs": read_abs, ".abs.gz": read_abs, ".bnt": read_bnt, ".ply": read_ply,
-    ".obj": read_mesh, ".off": read_mesh, ".stl": read_mesh,
+    ".obj": read_obj, ".off": read_mesh, ".stl": read_mesh,
     ".xyz": read_text_points, ".csv": read_text_points, ".txt": read_text_points,
     ".npy": read_numpy, ".npz": read_numpy, ".png": read_depth_image, ".tif": read_depth_image,
     ".tiff": read_depth_image,
@@ -113,7 +114,7 @@ def save_scan(scan: FaceScan, path: str | Path) -> None:
 
 __all__ = [
     "SUPPORTED_SUFFIXES", "load_scan", "save_scan", "load_landmarks_lm3", "scan_stem", "scan_suffix", "unique_stems",
-    "read_abs", "write_abs", "read_bnt", "write_bnt", "write_lm3", "read_ply", "write_ply", "read_mesh",
+    "read_abs", "write_abs", "read_bnt", "write_bnt", "write_lm3", "read_ply", "write_ply", "read_obj", "read_mesh",
     "DEPTH_SUFFIXES", "read_text_points", "read_numpy", "write_npz", "Intrinsics", "find_intrinsics", "read_depth_image",
     "write_depth_image",
 ]

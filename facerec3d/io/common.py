@@ -26,8 +26,9 @@ def scan_stem(path: str | Path) -> str:
 
 MAX_POINTS = 4_000_000  # refuse files announcing more points or pixels than this: a 2000×2000 range image, more
 #                          than face scanners and depth cameras deliver, keeps every command under 1 GB of memory
-MAX_MESH_BYTES = 64 << 20  # OBJ, OFF and STL files are parsed whole by trimesh, at ~9× their size (a 55 MB OBJ of
-#                            700,000 vertices and 1.4 million triangles peaked at 575 MB): larger ones are refused
+MAX_MESH_BYTES = 64 << 20  # OFF and STL files are parsed whole by trimesh, at ~9× their size (a 55 MB OBJ of
+#                            700,000 vertices and 1.4 million triangles peaked at 575 MB when trimesh read OBJ too;
+#                            OBJ is now read a record at a time, ~2× its size): larger ones are refused
 
 
 def describe(error: BaseException) -> str:

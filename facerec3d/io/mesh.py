@@ -1,4 +1,5 @@
-"""Meshes and point clouds: PLY through plyfile (read and write), OBJ / OFF / STL through trimesh (read).
+"""Meshes and point clouds: PLY through plyfile (read and write), OBJ read here (written by trimesh), OFF / STL
+through trimesh (read).
 
 Vertices become the scan's points (mm). A mesh's triangles are kept (`FaceScan.mesh`, polygons fanned into
 triangles) when it has no range-image grid, so preprocessing rasterises the surface, not only its vertices; a grid
@@ -10,6 +11,7 @@ integer vertex properties `row` and `col` and a header comment
 from __future__ import annotations
 
 import io
+import itertools
 import re
 import warnings
 from pathlib import Path
@@ -170,23 +172,6 @@ def write_obj(scan: FaceScan, path: str | Path) -> None:
     Path(path).write_text(text, encoding="utf-8")
 
 
-_OBJ_CORNER_DATA = re.compile(rb"(?m)^[ \t]*v[tn][ \t]")  # a texture coordinate or normal record
-_OBJ_FACE = re.compile(rb"(?m)^([ \t]*f[ \t][^\n]*)")
-_OBJ_INDEX_TAIL = re.compile(rb"/\S*")  # the /vt/vn of a face corner v/vt/vn, v//vn or v/vt
-
-
-def _obj_positions_only(data: bytes) -> bytes:
-    """An OBJ's text without its texture coordinates and normals (facerec3d uses neither): faces of plain vertex
-    indices. With them, trimesh makes one vertex per distinct (vertex, texture, normal) corner of a face, so a
-    vertex no face uses is dropped and one with two texture coordinates is doubled; without them (and with
-    `maintain_order`) it keeps the file's vertices, each once and in order. A file with neither is returned as
-    it is."""
-    if not _OBJ_CORNER_DATA.search(data):
-        return data
-    data = _OBJ_CORNER_DATA.sub(b"#", data)  # the records become comments: line numbers stay
-    return _OBJ_FACE.sub(lambda face: _OBJ_INDEX_TAIL.sub(b"", face.group(1)), data)
-
-
 def _check_off(path: str | Path, data: bytes) -> None:
     """Refuse an OFF file whose counts line is not numbers, or that ends before the vertices and faces its counts
     line promises, one a line (trimesh reads the lines there are: a file cut in its faces, or a counts line of
@@ -211,12 +196,151 @@ def _check_off(path: str | Path, data: bytes) -> None:
                                     f"each), the file holds only {held} lines after it")
 
 
-def read_mesh(path: str | Path) -> FaceScan:
-    """An OBJ, OFF or STL mesh or point cloud: its vertices, with vertex colours when the file has them.
+OBJ_CHUNK = 65536  # records converted to arrays at a time
+MAX_OBJ_LINE = 65536  # characters in one record: a polygon of thousands of corners (longer ones are refused as read)
 
-    Every vertex of an OBJ is a point, in the file's order, also those no face uses (isolated points: trimesh
-    drops them by default, about 2 % of a range scan written as OBJ, where a point whose neighbours are missing
-    or too far away is in no grid triangle); see `_obj_positions_only`.
+
+def read_obj(path: str | Path) -> FaceScan:
+    """A Wavefront OBJ mesh or point cloud, read here record by record (trimesh's loader builds meshes to draw:
+    it splits a file at each `usemtl`, makes one vertex per distinct vertex/texture/normal corner, drops the
+    vertices no face uses, and passes vertex index 0 or a short `v` line without a word).
+
+    Each `v x y z` record is one point, in the file's order, also those no face uses (a range scan written as OBJ
+    has about 2 % of isolated points: a point whose neighbours are missing or too far away is in no grid
+    triangle); `v x y z r g b` gives vertex colours when every `v` record has them (0–1, as trimesh reads them).
+    Each `f` record is a polygon of vertex numbers, fanned into triangles from its first corner: `1` is the first
+    vertex, `-1` the last one read before the face; of a corner `v/vt/vn` only `v` is read, and a face of fewer
+    than 3 corners is no triangle. Other records (`vt`, `vn`, `usemtl`, `mtllib`, `o`, `g`, `s`, ...) and
+    comments are skipped. A `v` record of fewer than 3 numbers, a corner that is not a vertex number, vertex 0
+    or a vertex the file does not have is refused, naming its line. Files over MAX_MESH_BYTES are refused
+    before they are read; lines over MAX_OBJ_LINE characters, more than MAX_POINTS points or 4 × MAX_POINTS
+    triangles as they are read.
+    """
+    with open_binary(path) as raw:
+        if raw.seek(0, 2) > MAX_MESH_BYTES:
+            raise ScanFormatError(path, f"absurd size: more than {MAX_MESH_BYTES} bytes")
+        raw.seek(0)
+        points, colors, triangles, triangle_lines = _ObjReader(path).read(raw)
+    if len(triangles) and (triangles.max() >= len(points)):
+        row = int(np.argmax(triangles.max(axis=1) >= len(points)))
+        raise ScanFormatError(path, f"line {triangle_lines[row]}: a face names vertex {triangles[row].max() + 1}, "
+                                    f"the file has {len(points)}")
+    if colors is not None:
+        import trimesh
+
+        colors = trimesh.visual.color.to_rgba(colors)[:, :3]
+    return point_scan(path, points, colors=colors, mesh=triangles)
+
+
+class _ObjReader:
+    """The `v` and `f` records of one OBJ file, gathered as text a chunk at a time and converted to arrays."""
+
+    def __init__(self, path: str | Path):
+        self.path = path
+        self.vertices, self.colors, self.triangles, self.triangle_lines = [], [], [], []
+        self.n_vertices = self.n_triangles = 0
+        self.all_coloured = True
+        self.v_rows, self.c_rows, self.v_lines = [], [], []
+        self.f_rows, self.f_lines, self.f_before = [], [], []
+
+    def read(self, raw) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
+        """(points (N, 3), colours (N, 3) or None, triangles (M, 3) from 0, the line of each triangle's face)."""
+        with io.TextIOWrapper(raw, encoding="utf-8-sig", errors="replace") as text:
+            record, first = "", 0
+            for number in itertools.count(1):
+                line = text.readline(MAX_OBJ_LINE + 1)
+                if not line:
+                    break
+                if len(line) + len(record) > MAX_OBJ_LINE:
+                    raise ScanFormatError(self.path, f"line {first or number}: a record longer than {MAX_OBJ_LINE} "
+                                                     "characters")
+                if "#" in line:
+                    line = line.split("#", 1)[0]
+                if "\\" in line and line.rstrip().endswith("\\"):  # continued on the next line
+                    record, first = record + line.rstrip()[:-1] + " ", first or number
+                    continue
+                self._record(record + line, first or number)
+                record, first = "", 0
+            self._record(record, first)
+        self._flush_vertices()
+        self._flush_faces()
+        points = np.concatenate(self.vertices) if self.vertices else np.empty((0, 3))
+        colors = np.concatenate(self.colors) if self.all_coloured and self.colors else None
+        triangles = np.concatenate(self.triangles) if self.triangles else np.empty((0, 3), dtype=np.int64)
+        lines = np.concatenate(self.triangle_lines) if self.triangle_lines else np.empty(0, dtype=np.int64)
+        return points, colors, triangles, lines
+
+    def _record(self, line: str, number: int) -> None:
+        fields = line.split()
+        if not fields:
+            return
+        if fields[0] == "v":
+            if len(fields) < 4:
+                raise ScanFormatError(self.path, f"line {number}: a vertex needs 3 coordinates, x y z: "
+                                                 f"{line.strip()[:80]!r}")
+            self.v_rows.append(fields[1:4])
+            self.v_lines.append(number)
+            self.all_coloured = self.all_coloured and len(fields) >= 7
+            if self.all_coloured:
+                self.c_rows.append(fields[4:7])
+            self.n_vertices += 1
+            if len(self.v_rows) == OBJ_CHUNK:
+                self._flush_vertices()
+        elif fields[0] == "f":
+            corners = [c.split("/", 1)[0] for c in fields[1:]] if "/" in line else fields[1:]
+            for k in range(1, len(corners) - 1):  # a polygon fanned from its first corner
+                self.f_rows.append([corners[0], corners[k], corners[k + 1]])
+                self.f_lines.append(number)
+                self.f_before.append(self.n_vertices)
+            if len(self.f_rows) >= OBJ_CHUNK:
+                self._flush_faces()
+
+    def _flush_vertices(self) -> None:
+        if self.n_vertices > MAX_POINTS:
+            raise ScanFormatError(self.path, f"absurd size: more than {MAX_POINTS} points")
+        if self.v_rows:
+            self.vertices.append(self._numbers(self.v_rows, self.v_lines, np.float64, "a vertex coordinate"))
+        if self.all_coloured and self.c_rows:
+            self.colors.append(self._numbers(self.c_rows, self.v_lines, np.float64, "a vertex colour"))
+        self.v_rows, self.c_rows, self.v_lines = [], [], []
+
+    def _flush_faces(self) -> None:
+        if not self.f_rows:
+            return
+        self.n_triangles += len(self.f_rows)
+        if self.n_triangles > 4 * MAX_POINTS:
+            raise ScanFormatError(self.path, f"absurd size: more than {4 * MAX_POINTS} triangles")
+        index = self._numbers(self.f_rows, self.f_lines, np.int64, "a face's vertex number")
+        lines, before = np.array(self.f_lines), np.array(self.f_before)[:, None]
+        triangles = np.where(index > 0, index - 1, before + index)  # -1: the last vertex read before the face
+        bad = (index == 0) | (triangles < 0)
+        if bad.any():
+            row = int(np.argmax(bad.any(axis=1)))
+            number = index[row][bad[row]][0]
+            reason = ("vertex 0 (OBJ numbers vertices from 1)" if number == 0 else
+                      f"vertex {number}, but only {before[row, 0]} come before it")
+            raise ScanFormatError(self.path, f"line {lines[row]}: a face names {reason}")
+        self.triangles.append(triangles)
+        self.triangle_lines.append(lines)
+        self.f_rows, self.f_lines, self.f_before = [], [], []
+
+    def _numbers(self, rows: list[list[str]], lines: list[int], dtype, what: str) -> np.ndarray:
+        """rows of number texts as an array; the first text that is not a number is refused, naming its line."""
+        try:
+            return np.array(rows, dtype=dtype)
+        except (ValueError, OverflowError):
+            for row, number in zip(rows, lines):
+                for value in row:
+                    try:
+                        np.array(value, dtype=dtype)
+                    except (ValueError, OverflowError):
+                        raise ScanFormatError(self.path, f"line {number}: {what} is not a number: {value[:40]!r}"
+                                              ) from None
+            raise
+
+
+def read_mesh(path: str | Path) -> FaceScan:
+    """An OFF or STL mesh or point cloud (trimesh): its vertices, with vertex colours when the file has them.
 
     Normals are not taken from these files (trimesh does not tell stored from computed ones);
     matchers estimate them from the points. trimesh parses the whole file, so files over MAX_MESH_BYTES are refused
@@ -229,13 +353,10 @@ def read_mesh(path: str | Path) -> FaceScan:
     suffix = Path(path).suffix.lower().lstrip(".")
     data = read_bytes(path, MAX_MESH_BYTES)
     normals = colors = mesh = None
-    options = {"maintain_order": True} if suffix == "obj" else {}  # every vertex, in order (not only faces')
-    if suffix == "obj":
-        data = _obj_positions_only(data)
     with library_errors(path, f"{suffix.upper()} file"):
         if suffix == "off":
             _check_off(path, data)
-        geometry = trimesh.load(io.BytesIO(data), file_type=suffix, process=False, **options)
+        geometry = trimesh.load(io.BytesIO(data), file_type=suffix, process=False)
         if isinstance(geometry, trimesh.Scene):
             parts = geometry.dump()
             points = np.concatenate([np.asarray(g.vertices) for g in parts]) if parts else np.empty((0, 3))
