@@ -406,6 +406,55 @@ def test_a_cache_entry_that_is_a_folder_is_recomputed(data, tmp_path, monkeypatc
     assert [p.name for p in cache.iterdir() if ".tmp." in p.name] == []  # no temporary file left either
 
 
+def test_only_a_scan_s_own_failures_are_cached(data, tmp_path, monkeypatch):
+    """A MemoryError (a run short of memory) was cached as the scan's failure: every later run, with memory to spare,
+    failed the scan from the cache. Only SCAN_FAILURES (an unreadable file, no face) are kept; any other error is
+    that run's, reported and not kept."""
+    from facerec3d.errors import FaceRec3DError
+    from facerec3d.io.common import library_errors
+
+    cache, scan = tmp_path / "cache", data["scans"][0]
+    entry = cache / cache_key(scan, PreprocessConfig())
+
+    def short_of_memory(self, scan):
+        raise MemoryError("Unable to allocate 7.03 MiB")
+
+    monkeypatch.setattr(batch.Preprocessor, "__call__", short_of_memory)
+    outcome = preprocess_file(scan, cache=cache)
+    assert outcome.error == "internal error (MemoryError: Unable to allocate 7.03 MiB); please report it"
+    assert not outcome.cached and not entry.with_suffix(".fail").exists()
+    monkeypatch.setattr(batch.Preprocessor, "__call__", lambda self, scan: (_ for _ in ()).throw(
+        FaceRec3DError("m.onnx: the nose proposer cannot be read (Permission denied)")))
+    assert preprocess_file(scan, cache=cache).error == "m.onnx: the nose proposer cannot be read (Permission denied)"
+    assert not entry.with_suffix(".fail").exists()
+    monkeypatch.undo()
+    again = preprocess_file(scan, cache=cache)  # with memory to spare: the face, then cached
+    assert again.face is not None and not again.cached and preprocess_file(scan, cache=cache).cached
+    # a scan's own failure is cached, as a record naming its kind
+    broken = cache / cache_key(data["broken"], PreprocessConfig())
+    first = preprocess_file(data["broken"], cache=cache)
+    assert json.loads(broken.with_suffix(".fail").read_text()) == {"failure": "ScanFormatError",
+                                                                   "reason": first.error}
+    again = preprocess_file(data["broken"], cache=cache)
+    assert (again.error, again.cached) == (first.error, True)
+    # memory running out inside a file's parser is no ScanFormatError (which would be cached) either
+    with pytest.raises(MemoryError), library_errors("x.ply", "PLY file"):
+        raise MemoryError
+
+
+@pytest.mark.parametrize("text", ["garbage", "", '{"failure": "MemoryError", "reason": "internal error"}',
+                                  '{"reason": "no face"}', '{"failure": "FailureToAcquire", "reason": 5}', "[" * 5000])
+def test_a_damaged_failure_entry_is_recomputed(data, tmp_path, text):
+    """A `.fail` entry holding `garbage` gave `garbage` as the scan's reason: one that is not a record
+    `_write_cache` writes is damaged, removed and computed again, as a damaged face is."""
+    cache = tmp_path / "cache"
+    fail = cache / (cache_key(data["broken"], PreprocessConfig()) + ".fail")
+    record = (preprocess_file(data["broken"], cache=cache), fail.read_text())
+    fail.write_text(text)
+    outcome = preprocess_file(data["broken"], cache=cache)
+    assert not outcome.cached and outcome.error == record[0].error and fail.read_text() == record[1]
+
+
 def test_faces_cached_by_another_version_of_the_code_are_made_again(data, tmp_path, monkeypatch):
     cache = tmp_path / "cache"
     scan = data["scans"][0]
