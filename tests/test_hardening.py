@@ -535,6 +535,51 @@ def test_preprocessing_settings_are_checked_field_by_field(tmp_path, text, where
     assert str(e.value).startswith(f"{path}: {where}") and "\n" not in str(e.value)
 
 
+GRID_OVER = "on {} cells a side, more than the 2000 × 2000 of the largest scan facerec3d reads: use larger cells"
+
+
+@pytest.mark.parametrize("text, where", [
+    ('[resample]\nresolution_mm = 1e-9\n', "resample.resolution_mm: 1e-09 mm cells lay the grid, 2 × half_width_mm = "
+                                            "190 mm, " + GRID_OVER.format("1.9e+11")),
+    ('[resample]\nhalf_width_mm = 5000\nresolution_mm = 0.1\n', "resample.resolution_mm: 0.1 mm cells lay the grid, "
+                                                                "2 × half_width_mm = 10000 mm, " + GRID_OVER.format(100001)),
+    ('crop_radius_mm = 100\n[resample]\nhalf_width_mm = 100\nresolution_mm = 0.1\n',
+     "resample.resolution_mm: 0.1 mm cells lay the grid, 2 × half_width_mm = 200 mm, " + GRID_OVER.format(2001)),
+    ('gridify_mm = 1e-9\n', "gridify_mm: 1e-09 mm cells lay a face, 2 × crop_radius_mm = 190 mm, " + GRID_OVER.format("1.9e+11")),
+    ('gridify_mm = 0.05\n', "gridify_mm: 0.05 mm cells lay a face, 2 × crop_radius_mm = 190 mm, " + GRID_OVER.format(3801)),
+    ('[detect]\nsample_mm = 1e-9\n', "detect.sample_mm: 1e-09 mm cells lay a head down to its nose, crown_mm[1] = 190 mm, "
+                                      + GRID_OVER.format("1.9e+11")),
+])
+def test_a_grid_too_large_to_allocate_is_refused_with_the_settings(tmp_path, text, where):
+    """Settings that passed the check made every scan fail: a 1e-9 mm resampling cell "internal error (ValueError:
+    array is too big)", a 10 m grid at 0.1 mm a MemoryError, a 1e-9 mm detection sample a MemoryError (1.4 TiB), a
+    1e-9 mm gridify cell a failure to acquire. A cell size that lays its span on a grid wider than the largest scan
+    facerec3d reads (2000 × 2000) is refused, naming the file and `section.field`."""
+    path = tmp_path / "grid.toml"
+    path.write_text(text)
+    with pytest.raises(SettingsError) as e:
+        PreprocessConfig.load(path)
+    assert str(e.value) == f"{path}: {where}"
+
+
+def test_the_finest_usable_grids_are_accepted_and_the_cli_refuses_a_finer_one_before_any_work(data, tmp_path):
+    from facerec3d.preprocess.resample import ResampleConfig
+
+    assert ResampleConfig(resolution_mm=0.1).size == 1901  # 0.1 mm over the default 95 mm: finer than any scanner
+    assert PreprocessConfig(gridify_mm=0.1).gridify_mm == 0.1
+    with pytest.raises(SettingsError, match=r"^resolution_mm: 0\.09 mm cells lay the grid"):
+        ResampleConfig(resolution_mm=0.09)  # built in Python: the same check
+    (tmp_path / "tiny.toml").write_text("[resample]\nresolution_mm = 1e-9\n")
+    for command in (["preprocess", str(data["scans"][0]), "-o", str(tmp_path / "p")],
+                    ["evaluate", str(data["root"]), "--method", "icp", "--out", str(tmp_path / "p"), "--jobs", "1"]):
+        r = CliRunner().invoke(main, [*command, "--config", str(tmp_path / "tiny.toml"), "--cache", str(tmp_path / "c")]
+                               if command[0] == "evaluate" else [*command, "--config", str(tmp_path / "tiny.toml")])
+        assert r.exit_code == 2 and r.output == (f"error: {tmp_path / 'tiny.toml'}: resample.resolution_mm: 1e-09 mm "
+                                                 "cells lay the grid, 2 × half_width_mm = 190 mm, "
+                                                 + GRID_OVER.format("1.9e+11") + "\n"), r.output
+        assert not (tmp_path / "p").exists() and not (tmp_path / "c").exists()
+
+
 def test_settings_built_in_python_are_range_checked_as_files_are():
     """PreprocessConfig(crop_radius_mm=-5) made faces of no points (a file's value was refused); a dict or a path
     given to Preprocessor failed deep inside with an AttributeError."""

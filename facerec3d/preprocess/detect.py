@@ -39,6 +39,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from facerec3d.config import check_cells
 from facerec3d.errors import FailureToAcquire, short_of
 from facerec3d.geometry.ball import BallIndex, nearest_index, within_ball
 from facerec3d.geometry.normals import least_eigenvector
@@ -137,6 +138,7 @@ class DetectConfig:
     #   where 1500 make preprocessing 1.2× faster)
 
     def __post_init__(self) -> None:
+        check_cells("sample_mm", self.sample_mm, self.crown_mm[1], "a head down to its nose, crown_mm[1]")
         if self.proposals < 1 or self.proposed_finalists < 1:
             raise ValueError("proposals and proposed_finalists must be ≥ 1")
         if self.proposer not in ("", "shipped") and not Path(self.proposer).is_file():
