@@ -671,6 +671,19 @@ def test_fuzzed_settings_raise_settings_error_only(table):
         assert str(e).startswith("fuzz.json: ") and "\n" not in str(e)
 
 
+def test_a_proposer_that_is_no_onnx_file_is_refused_before_anything_is_enrolled(data, tmp_path):
+    """`[detect] proposer = "base.obj"` (a file, but no ONNX model) recorded every scan as a failure to enrol; as a
+    missing file, it is one settings line, exit 2, and no gallery is made."""
+    (tmp_path / "base.obj").write_text("v 0 0 0\n")
+    settings = tmp_path / "prop.toml"
+    settings.write_text('[detect]\nproposer = "base.obj"\n')
+    r = enroll(data["scans"][:2], data, tmp_path / "gp.sqlite", "--config", settings)
+    prefix = (f"error: {settings}: detect: proposer '{tmp_path / 'base.obj'}': not a usable ONNX nose proposer "
+              "([ONNXRuntimeError] : 7 : INVALID_PROTOBUF : Load model from ")
+    assert r.exit_code == 2 and r.output.startswith(prefix) and r.output.count("\n") == 1, r.output
+    assert not (tmp_path / "gp.sqlite").exists()
+
+
 def test_cli_settings_errors_are_one_line_and_bugs_are_not_disguised(data, tmp_path, monkeypatch):
     bad = tmp_path / "bad.toml"
     bad.write_text('fine_points = "800"\n')
