@@ -113,8 +113,8 @@ def from_dict(cls, data: dict[str, Any], source: str | Path | None = None, prefi
               for name, value in data.items()}
     try:
         return dataclasses.replace(base, **values) if base is not None else cls(**values)
-    except SettingsError:
-        raise
+    except SettingsError as e:  # the config's own checks naming one of its fields (`check_cells`): in this file
+        raise e.within(source, prefix.rstrip(".") or None) from None  # and section
     except ValueError as e:  # the config's own checks (__post_init__)
         raise SettingsError(source, prefix.rstrip(".") or None, str(e)) from None
 
@@ -190,6 +190,24 @@ def check_ranges(config, prefix: str = "") -> None:
         elif isinstance(value, tuple) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
             for v in value:
                 _in_range(float, v, None, name)
+
+
+def check_cells(field: str, cell_mm: float, span_mm: float, span: str) -> None:
+    """Refuse the setting `field`, a cell size of `cell_mm` that lays `span` (words, `span_mm` long) on a square
+    grid wider than the largest scan facerec3d reads (io.common.MAX_POINTS, 2000 × 2000 cells): SettingsError naming
+    `field`, when the settings are checked, before any work. The bound is far above any real use (the default
+    resampling grid is 191 × 191 cells; at 0.1 mm, finer than any face scanner samples, 1901 × 1901) and keeps a
+    scan's grid and the arrays made from it under a few hundred MB; a finer grid made every scan fail (a MemoryError,
+    NumPy's "array is too big"), and a face on it could not be read back from the cache. A cell <= 0 or NaN is left
+    to its range check (`check_ranges`)."""
+    from facerec3d.io.common import MAX_POINTS
+
+    side = math.isqrt(MAX_POINTS)
+    across = span_mm / cell_mm + 1 if cell_mm > 0 else 0.0  # cells along a side
+    if across > side:
+        raise SettingsError(None, field, f"{cell_mm:g} mm cells lay {span} = {span_mm:g} mm, on {across:.6g} cells "
+                                         f"a side, more than the {side} × {side} of the largest scan facerec3d reads: "
+                                         "use larger cells")
 
 
 def _number(hint) -> type | None:

@@ -411,6 +411,55 @@ def test_a_cache_entry_that_is_a_folder_is_recomputed(data, tmp_path, monkeypatc
     assert [p.name for p in cache.iterdir() if ".tmp." in p.name] == []  # no temporary file left either
 
 
+def test_only_a_scan_s_own_failures_are_cached(data, tmp_path, monkeypatch):
+    """A MemoryError (a run short of memory) was cached as the scan's failure: every later run, with memory to spare,
+    failed the scan from the cache. Only SCAN_FAILURES (an unreadable file, no face) are kept; any other error is
+    that run's, reported and not kept."""
+    from facerec3d.errors import FaceRec3DError
+    from facerec3d.io.common import library_errors
+
+    cache, scan = tmp_path / "cache", data["scans"][0]
+    entry = cache / cache_key(scan, PreprocessConfig())
+
+    def short_of_memory(self, scan):
+        raise MemoryError("Unable to allocate 7.03 MiB")
+
+    monkeypatch.setattr(batch.Preprocessor, "__call__", short_of_memory)
+    outcome = preprocess_file(scan, cache=cache)
+    assert outcome.error == "internal error (MemoryError: Unable to allocate 7.03 MiB); please report it"
+    assert not outcome.cached and not entry.with_suffix(".fail").exists()
+    monkeypatch.setattr(batch.Preprocessor, "__call__", lambda self, scan: (_ for _ in ()).throw(
+        FaceRec3DError("m.onnx: the nose proposer cannot be read (Permission denied)")))
+    assert preprocess_file(scan, cache=cache).error == "m.onnx: the nose proposer cannot be read (Permission denied)"
+    assert not entry.with_suffix(".fail").exists()
+    monkeypatch.undo()
+    again = preprocess_file(scan, cache=cache)  # with memory to spare: the face, then cached
+    assert again.face is not None and not again.cached and preprocess_file(scan, cache=cache).cached
+    # a scan's own failure is cached, as a record naming its kind
+    broken = cache / cache_key(data["broken"], PreprocessConfig())
+    first = preprocess_file(data["broken"], cache=cache)
+    assert json.loads(broken.with_suffix(".fail").read_text()) == {"failure": "ScanFormatError",
+                                                                   "reason": first.error}
+    again = preprocess_file(data["broken"], cache=cache)
+    assert (again.error, again.cached) == (first.error, True)
+    # memory running out inside a file's parser is no ScanFormatError (which would be cached) either
+    with pytest.raises(MemoryError), library_errors("x.ply", "PLY file"):
+        raise MemoryError
+
+
+@pytest.mark.parametrize("text", ["garbage", "", '{"failure": "MemoryError", "reason": "internal error"}',
+                                  '{"reason": "no face"}', '{"failure": "FailureToAcquire", "reason": 5}', "[" * 5000])
+def test_a_damaged_failure_entry_is_recomputed(data, tmp_path, text):
+    """A `.fail` entry holding `garbage` gave `garbage` as the scan's reason: one that is not a record
+    `_write_cache` writes is damaged, removed and computed again, as a damaged face is."""
+    cache = tmp_path / "cache"
+    fail = cache / (cache_key(data["broken"], PreprocessConfig()) + ".fail")
+    record = (preprocess_file(data["broken"], cache=cache), fail.read_text())
+    fail.write_text(text)
+    outcome = preprocess_file(data["broken"], cache=cache)
+    assert not outcome.cached and outcome.error == record[0].error and fail.read_text() == record[1]
+
+
 def test_faces_cached_by_another_version_of_the_code_are_made_again(data, tmp_path, monkeypatch):
     cache = tmp_path / "cache"
     scan = data["scans"][0]
@@ -489,6 +538,51 @@ def test_preprocessing_settings_are_checked_field_by_field(tmp_path, text, where
     with pytest.raises(SettingsError) as e:
         PreprocessConfig.load(path)
     assert str(e.value).startswith(f"{path}: {where}") and "\n" not in str(e.value)
+
+
+GRID_OVER = "on {} cells a side, more than the 2000 × 2000 of the largest scan facerec3d reads: use larger cells"
+
+
+@pytest.mark.parametrize("text, where", [
+    ('[resample]\nresolution_mm = 1e-9\n', "resample.resolution_mm: 1e-09 mm cells lay the grid, 2 × half_width_mm = "
+                                            "190 mm, " + GRID_OVER.format("1.9e+11")),
+    ('[resample]\nhalf_width_mm = 5000\nresolution_mm = 0.1\n', "resample.resolution_mm: 0.1 mm cells lay the grid, "
+                                                                "2 × half_width_mm = 10000 mm, " + GRID_OVER.format(100001)),
+    ('crop_radius_mm = 100\n[resample]\nhalf_width_mm = 100\nresolution_mm = 0.1\n',
+     "resample.resolution_mm: 0.1 mm cells lay the grid, 2 × half_width_mm = 200 mm, " + GRID_OVER.format(2001)),
+    ('gridify_mm = 1e-9\n', "gridify_mm: 1e-09 mm cells lay a face, 2 × crop_radius_mm = 190 mm, " + GRID_OVER.format("1.9e+11")),
+    ('gridify_mm = 0.05\n', "gridify_mm: 0.05 mm cells lay a face, 2 × crop_radius_mm = 190 mm, " + GRID_OVER.format(3801)),
+    ('[detect]\nsample_mm = 1e-9\n', "detect.sample_mm: 1e-09 mm cells lay a head down to its nose, crown_mm[1] = 190 mm, "
+                                      + GRID_OVER.format("1.9e+11")),
+])
+def test_a_grid_too_large_to_allocate_is_refused_with_the_settings(tmp_path, text, where):
+    """Settings that passed the check made every scan fail: a 1e-9 mm resampling cell "internal error (ValueError:
+    array is too big)", a 10 m grid at 0.1 mm a MemoryError, a 1e-9 mm detection sample a MemoryError (1.4 TiB), a
+    1e-9 mm gridify cell a failure to acquire. A cell size that lays its span on a grid wider than the largest scan
+    facerec3d reads (2000 × 2000) is refused, naming the file and `section.field`."""
+    path = tmp_path / "grid.toml"
+    path.write_text(text)
+    with pytest.raises(SettingsError) as e:
+        PreprocessConfig.load(path)
+    assert str(e.value) == f"{path}: {where}"
+
+
+def test_the_finest_usable_grids_are_accepted_and_the_cli_refuses_a_finer_one_before_any_work(data, tmp_path):
+    from facerec3d.preprocess.resample import ResampleConfig
+
+    assert ResampleConfig(resolution_mm=0.1).size == 1901  # 0.1 mm over the default 95 mm: finer than any scanner
+    assert PreprocessConfig(gridify_mm=0.1).gridify_mm == 0.1
+    with pytest.raises(SettingsError, match=r"^resolution_mm: 0\.09 mm cells lay the grid"):
+        ResampleConfig(resolution_mm=0.09)  # built in Python: the same check
+    (tmp_path / "tiny.toml").write_text("[resample]\nresolution_mm = 1e-9\n")
+    for command in (["preprocess", str(data["scans"][0]), "-o", str(tmp_path / "p")],
+                    ["evaluate", str(data["root"]), "--method", "icp", "--out", str(tmp_path / "p"), "--jobs", "1"]):
+        r = CliRunner().invoke(main, [*command, "--config", str(tmp_path / "tiny.toml"), "--cache", str(tmp_path / "c")]
+                               if command[0] == "evaluate" else [*command, "--config", str(tmp_path / "tiny.toml")])
+        assert r.exit_code == 2 and r.output == (f"error: {tmp_path / 'tiny.toml'}: resample.resolution_mm: 1e-09 mm "
+                                                 "cells lay the grid, 2 × half_width_mm = 190 mm, "
+                                                 + GRID_OVER.format("1.9e+11") + "\n"), r.output
+        assert not (tmp_path / "p").exists() and not (tmp_path / "c").exists()
 
 
 def test_settings_built_in_python_are_range_checked_as_files_are():
@@ -580,6 +674,19 @@ def test_fuzzed_settings_raise_settings_error_only(table):
         PreprocessConfig.from_dict(table, "fuzz.json")
     except SettingsError as e:
         assert str(e).startswith("fuzz.json: ") and "\n" not in str(e)
+
+
+def test_a_proposer_that_is_no_onnx_file_is_refused_before_anything_is_enrolled(data, tmp_path):
+    """`[detect] proposer = "base.obj"` (a file, but no ONNX model) recorded every scan as a failure to enrol; as a
+    missing file, it is one settings line, exit 2, and no gallery is made."""
+    (tmp_path / "base.obj").write_text("v 0 0 0\n")
+    settings = tmp_path / "prop.toml"
+    settings.write_text('[detect]\nproposer = "base.obj"\n')
+    r = enroll(data["scans"][:2], data, tmp_path / "gp.sqlite", "--config", settings)
+    prefix = (f"error: {settings}: detect: proposer '{tmp_path / 'base.obj'}': not a usable ONNX nose proposer "
+              "([ONNXRuntimeError] : 7 : INVALID_PROTOBUF : Load model from ")
+    assert r.exit_code == 2 and r.output.startswith(prefix) and r.output.count("\n") == 1, r.output
+    assert not (tmp_path / "gp.sqlite").exists()
 
 
 def test_cli_settings_errors_are_one_line_and_bugs_are_not_disguised(data, tmp_path, monkeypatch):

@@ -84,14 +84,31 @@ def test_a_nose_facing_the_camera_is_inside_the_surface_and_one_in_profile_at_it
     assert at_rim(sub, spacing, np.array([corner]), config).tolist() == [True]
 
 
-def test_a_damaged_proposer_model_is_one_clear_error(tmp_path):
+def test_a_proposer_file_that_is_no_nose_proposer_is_refused_with_the_settings(tmp_path):
+    """A damaged model, or another ONNX model, named as the proposer passed the settings and failed every scan to
+    enrol ("not a usable ONNX nose proposer"): it is opened when the settings are checked, as a missing file is
+    refused there, and refused by name; so is a model that is no height map's (the embedding network)."""
+    import shutil
+
+    from facerec3d.matching.embedding import SHIPPED_MODEL
+
     bad = tmp_path / "nose.onnx"
     bad.write_bytes(b"not a model")
-    scan, _ = detector_view("kinect-v2", 0, 0, None, subject=5)
-    with pytest.raises(FaceRec3DError, match="nose.onnx: not a usable ONNX nose proposer"):
-        detect_face(scan, DetectConfig(proposer=str(bad)))
+    with pytest.raises(ValueError) as e:
+        DetectConfig(proposer=str(bad))
+    assert str(e.value).startswith(f"proposer {str(bad)!r}: not a usable ONNX nose proposer ([ONNXRuntimeError] : 7 "
+                                   ": INVALID_PROTOBUF : Load model from ") and "\n" not in str(e.value)
+    other = shutil.copy(SHIPPED_MODEL, tmp_path / "embedding.onnx")
+    with pytest.raises(ValueError) as e:
+        DetectConfig(proposer=str(other))
+    assert str(e.value) == (f"proposer {str(other)!r}: not a usable ONNX nose proposer (it takes input [5, 64, 64], a "
+                            "nose proposer a height map [3, H, W])")
+    with pytest.raises(FaceRec3DError, match=r"embedding.onnx: not a usable ONNX nose proposer \(it takes input"):
+        NoseProposer(other).session  # as the detector opens it
     with pytest.raises(ValueError, match="no such file"):
         DetectConfig(proposer=str(tmp_path / "missing.onnx"))
+    good = shutil.copy(SHIPPED_PROPOSER, tmp_path / "mine.onnx")
+    assert DetectConfig(proposer=str(good)).proposer == str(good)
     assert SHIPPED_PROPOSER.is_file() and proposer("shipped").path == SHIPPED_PROPOSER
 
 

@@ -42,7 +42,7 @@ def library_errors(path: str | Path, what: str) -> Iterator[None]:
     """Turn any exception a parsing library raises into ScanFormatError('not a readable <what>')."""
     try:
         yield
-    except (ScanFormatError, ImportError):  # a missing dependency is not a bad file
+    except (ScanFormatError, ImportError, MemoryError):  # a missing dependency or memory running out: not a bad file
         raise
     except Exception as e:  # third-party parsers raise many kinds on corrupt input
         raise ScanFormatError(path, f"not a readable {what} ({describe(e)})") from None

@@ -2,17 +2,19 @@
 
 A failure to acquire (ISO/IEC 19795-1: unreadable file, no face found) is
 reported with its reason and the batch goes on. With a cache folder, each
-result (face or failure) is kept under a key made of the file's path, size,
-modification time, the whole preprocessing configuration and the code that
-preprocesses (`code_stamp`: a new version of facerec3d makes new entries), so a
-rerun or a second method reuses the work. Entries are written atomically, so workers in
-several processes or on several machines (a Dask cluster sharing the folder)
-can fill one cache at the same time.
+face, and each failure that belongs to the scan itself (`SCAN_FAILURES`; not an
+internal error or memory running out, which are that run's), is kept under a
+key made of the file's path, size, modification time, the whole preprocessing
+configuration and the code that preprocesses (`code_stamp`: a new version of
+facerec3d makes new entries), so a rerun or a second method reuses the work.
+Entries are written atomically, so workers in several processes or on several
+machines (a Dask cluster sharing the folder) can fill one cache at the same time.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import re
 import shutil
@@ -23,7 +25,7 @@ from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 
-from facerec3d.errors import FaceRec3DError
+from facerec3d.errors import FaceRec3DError, FailureToAcquire, ScanFormatError
 from facerec3d.preprocess.pipeline import PreprocessConfig, Preprocessor
 from facerec3d.scan import FaceScan
 from facerec3d.workers import Workers, one_thread_per_process  # noqa: F401 (server.app imports it from here)
@@ -41,6 +43,12 @@ class Outcome:
     error: str | None = None
     cached: bool = False  # read from the cache, not computed
     seconds: float = 0.0  # time to load or compute it (in the worker)
+
+
+#: The failures that belong to the scan itself, which every run would meet again (a file that cannot be read, no
+#: face found in it): the only ones cached. Any other (an internal error, memory running out, a model file that
+#: cannot be read) is that run's: reported, never kept (a MemoryError once failed every scan of later runs too).
+SCAN_FAILURES = (FailureToAcquire, ScanFormatError)
 
 
 PACKAGE = Path(__file__).resolve().parent.parent
@@ -102,14 +110,16 @@ def preprocess_file(path: str | Path, config: PreprocessConfig = PreprocessConfi
         stored = Path(cache) / cache_key(path, config, intrinsics)
         if (outcome := _read_cache(stored, path)) is not None:
             return replace(outcome, seconds=time.perf_counter() - t0)
+    failure = None  # the SCAN_FAILURES type the scan failed with, which is cached
     try:
         outcome = Outcome(str(path), Preprocessor(config)(load_scan(path, intrinsics)))
     except FaceRec3DError as e:
         outcome = Outcome(str(path), None, getattr(e, "reason", str(e)))
+        failure = type(e).__name__ if isinstance(e, SCAN_FAILURES) else None
     except Exception as e:  # noqa: BLE001 - a scan no check foresaw: recorded as its failure, the batch goes on
         outcome = Outcome(str(path), None, f"internal error ({type(e).__name__}: {e}); please report it"[:500])
-    if stored is not None:
-        _write_cache(stored, outcome)
+    if stored is not None and (outcome.face is not None or failure is not None):
+        _write_cache(stored, outcome, failure)
     return replace(outcome, seconds=time.perf_counter() - t0)
 
 
@@ -135,7 +145,7 @@ def _read_cache(stored: Path, path: str | Path) -> Outcome | None:
             return Outcome(str(path), face.replace(meta=face.meta.replace(path=str(path), scan_id=scan_stem(path))),
                            cached=True)
         if fail_file.is_file():
-            if reason := fail_file.read_text(encoding="utf-8"):
+            if reason := _failure_reason(fail_file.read_text(encoding="utf-8")):
                 return Outcome(str(path), None, reason, cached=True)
         elif not (os.path.lexists(face_file) or os.path.lexists(fail_file)):
             return None  # no entry (nothing removed: another worker may be writing it now)
@@ -149,9 +159,22 @@ def _read_cache(stored: Path, path: str | Path) -> Outcome | None:
     return None
 
 
-def _write_cache(stored: Path, outcome: Outcome) -> None:
+def _failure_reason(text: str) -> str | None:
+    """The reason a `.fail` entry records (`_write_cache`), or None when the text is no such record (damaged)."""
+    try:
+        entry = json.loads(text)
+    except (ValueError, RecursionError):
+        return None
+    if (isinstance(entry, dict) and entry.keys() == {"failure", "reason"} and isinstance(entry["reason"], str)
+            and entry["failure"] in {t.__name__ for t in SCAN_FAILURES}):
+        return entry["reason"]
+    return None
+
+
+def _write_cache(stored: Path, outcome: Outcome, failure: str | None = None) -> None:
     """Cache an outcome atomically: written to a temporary file, then renamed over the entry (os.replace), so a
-    killed process or a concurrent writer never leaves a partial entry."""
+    killed process or a concurrent writer never leaves a partial entry. A failure (of type `failure`, a name of
+    `SCAN_FAILURES`) is kept as JSON `{"failure": ..., "reason": ...}`, which `_failure_reason` reads back."""
     from facerec3d.io import save_scan
 
     suffix = ".npz" if outcome.face is not None else ".fail"
@@ -161,7 +184,7 @@ def _write_cache(stored: Path, outcome: Outcome) -> None:
         if outcome.face is not None:
             save_scan(outcome.face, tmp)
         else:
-            tmp.write_text(outcome.error, encoding="utf-8")
+            tmp.write_text(json.dumps({"failure": failure, "reason": outcome.error}), encoding="utf-8")
         try:
             os.replace(tmp, stored.with_suffix(suffix))
         except IsADirectoryError:

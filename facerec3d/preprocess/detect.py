@@ -39,7 +39,8 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from facerec3d.errors import FailureToAcquire, short_of
+from facerec3d.config import check_cells
+from facerec3d.errors import FaceRec3DError, FailureToAcquire, short_of
 from facerec3d.geometry.ball import BallIndex, nearest_index, within_ball
 from facerec3d.geometry.normals import least_eigenvector
 from facerec3d.geometry.transforms import rotation_from_euler
@@ -137,10 +138,17 @@ class DetectConfig:
     #   where 1500 make preprocessing 1.2× faster)
 
     def __post_init__(self) -> None:
+        check_cells("sample_mm", self.sample_mm, self.crown_mm[1], "a head down to its nose, crown_mm[1]")
         if self.proposals < 1 or self.proposed_finalists < 1:
             raise ValueError("proposals and proposed_finalists must be ≥ 1")
-        if self.proposer not in ("", "shipped") and not Path(self.proposer).is_file():
-            raise ValueError(f"proposer {self.proposer!r}: no such file (give \"shipped\", an ONNX file, or \"\")")
+        if self.proposer not in ("", "shipped"):
+            if not Path(self.proposer).is_file():
+                raise ValueError(f"proposer {self.proposer!r}: no such file (give \"shipped\", an ONNX file, or \"\")")
+            model = proposer(self.proposer)
+            try:  # opened here, once per process: a file that is no nose proposer is refused with the settings,
+                model.session  # before any work (it failed every scan to acquire)
+            except FaceRec3DError as e:
+                raise ValueError(f"proposer {self.proposer!r}: {str(e).removeprefix(f'{model.path}: ')}") from None
 
 
 @dataclass(frozen=True)

@@ -46,7 +46,7 @@ from typing import Any
 
 import numpy as np
 
-from facerec3d.config import check_ranges, from_dict, read_settings
+from facerec3d.config import check_cells, check_ranges, from_dict, read_settings
 from facerec3d.errors import InputError
 from facerec3d.preprocess.denoise import (DenoiseConfig, DequantiseConfig, SmoothConfig, denoise, dequantise,
                                          smooth_range_image)
@@ -90,6 +90,8 @@ class PreprocessConfig:
         check_ranges(self)  # as a settings file's values are (a config built in Python skips from_dict)
         if not self.max_noise_pitches >= 0:
             raise ValueError(f"max_noise_pitches must be >= 0 (0: off), not {self.max_noise_pitches}")
+        if self.gridify_mm > 0:  # gridify's grid spans the whole scan, at least the face
+            check_cells("gridify_mm", self.gridify_mm, 2 * self.crop_radius_mm, "a face, 2 × crop_radius_mm")
         if self.crop_radius_mm > self.resample.half_width_mm:
             raise ValueError(f"crop_radius_mm {self.crop_radius_mm:g} is wider than the resampling grid "
                              f"(resample.half_width_mm {self.resample.half_width_mm:g}), which would cut the face: "

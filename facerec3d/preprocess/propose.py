@@ -128,6 +128,11 @@ class NoseProposer:
     def session(self) -> Any:
         if self._session is None:
             self._session = onnx_session(self.path, "nose proposer")
+            shape = self._session.get_inputs()[0].shape
+            if len(shape) != 4 or shape[1] != 3:  # another model (an embedding's): it would fail on every scan
+                self._session = None
+                raise FaceRec3DError(f"{self.path}: not a usable ONNX nose proposer (it takes input {shape[1:]}, a "
+                                     "nose proposer a height map [3, H, W])")
         return self._session
 
     def scores(self, hm: HeightMap) -> np.ndarray:

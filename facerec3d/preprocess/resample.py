@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from facerec3d.config import check_cells
 from facerec3d.errors import FailureToAcquire, InputError
 from facerec3d.io.common import MAX_POINTS
 from facerec3d.scan import FaceScan, column_bounds
@@ -30,6 +31,9 @@ class ResampleConfig:
 
     resolution_mm: float = 1.0  # cell size
     half_width_mm: float = 95.0  # the grid spans [−w, w] in x and y; also the default crop radius (PreprocessConfig)
+
+    def __post_init__(self) -> None:
+        check_cells("resolution_mm", self.resolution_mm, 2 * self.half_width_mm, "the grid, 2 × half_width_mm")
 
     @property
     def size(self) -> int:
