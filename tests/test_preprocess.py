@@ -190,6 +190,20 @@ def test_faceless_scans_are_failures_to_acquire(kind):
         Preprocessor()(faceless_scans()[kind])
 
 
+@pytest.mark.parametrize("proposer", ["shipped", ""])
+def test_a_search_spacing_coarser_than_the_scan_is_a_failure_to_acquire_that_says_so(proposer):
+    """`[detect] sample_mm = 1000` left the face search no point: "internal error (ValueError: column_bounds needs a
+    non-empty 2-D array)" for every scan, with the proposer and with the hand-made candidates alike."""
+    from dataclasses import replace
+
+    base = PreprocessConfig()
+    config = replace(base, detect=replace(base.detect, sample_mm=1000.0, proposer=proposer))
+    scan = quick_scan(0).scan  # (the detector counts the points it sees: de-spiked, without its spike pixels)
+    with pytest.raises(FailureToAcquire, match=r"^the face search sees only \d of the \d+ points at "
+                                               r"its spacing \(\[detect\] sample_mm = 1000\), it needs 50$"):
+        Preprocessor(config)(scan)
+
+
 def test_a_frame_of_random_depths_is_no_surface_while_every_sensor_profile_is():
     """Random depths spread over 50–700 mm at a 2 mm pitch (a broken sensor, a corrupt frame) are failures to
     acquire that say why, whatever the draw: before the surface check the detector, whose smoothing scales with

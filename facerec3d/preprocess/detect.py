@@ -167,6 +167,18 @@ class Detection:
     #                                               the model-based matchers, matching.morphable)
 
 
+MIN_SEARCH_POINTS = 50  # points of the search image (`_subsample` at `sample_mm`) below which no face is searched
+
+
+def check_search_image(sub: FaceScan, scan: FaceScan, config: DetectConfig) -> None:
+    """FailureToAcquire when the search image, the scan on every k-th row and column ~`sample_mm` apart, holds fewer
+    than MIN_SEARCH_POINTS points (a `sample_mm` coarser than the scan is wide left none: an internal error)."""
+    if sub.n_points < MIN_SEARCH_POINTS:
+        raise FailureToAcquire(f"the face search sees only {sub.n_points} of the {scan.n_points} points at its "
+                               f"spacing ([detect] sample_mm = {config.sample_mm:g}), it needs {MIN_SEARCH_POINTS}",
+                               scan.meta.path)
+
+
 def _subsample(scan: FaceScan, spacing_mm: float) -> tuple[FaceScan, float]:
     """The grid scan on every k-th row and column so that points are ~spacing_mm apart; (scan, spacing)."""
     res = scan.resolution()
@@ -276,6 +288,7 @@ def nose_candidates(scan: FaceScan, config: DetectConfig = DetectConfig()) -> tu
     `candidates` of them, in that order, less repeats.
     """
     sub, spacing = _subsample(scan, config.sample_mm)
+    check_search_image(sub, scan, config)
     xyz, valid = sub.to_range_image()
     half = max(1, int(round(config.window_mm / spacing / 2)))
     along_z, along_normal, at_rim = _protrusion(np.nan_to_num(xyz), valid, half, (0.75 * config.window_mm) ** 2,
@@ -339,6 +352,7 @@ def _detect_face(scan: FaceScan, config: DetectConfig) -> Detection:
     tested = _subsample(scan, config.detail_mm)[0] if config.detail_mm > 0 else scan  # placements' tests
     if config.proposer:
         sub, spacing = _subsample(scan, config.sample_mm)
+        check_search_image(sub, scan, config)
         cands = proposer(config.proposer).propose(sub.points, config.proposals, config.separation_mm)
         rim, profile, n_final = at_rim(sub, spacing, cands, config), [], config.proposed_finalists
     else:
