@@ -51,9 +51,11 @@ def one_thread_per_process() -> None:
 
 
 def _init_worker() -> None:
-    """Process-pool worker start: one BLAS thread; on Linux, die with the parent process (PR_SET_PDEATHSIG),
-    so a killed run leaves no orphaned workers."""
+    """Process-pool worker start: one BLAS thread; Ctrl-C (SIGINT, sent to the whole process group) ends the worker
+    quietly, the parent alone saying `interrupted` (an idle worker printed a KeyboardInterrupt traceback each); on
+    Linux, die with the parent process (PR_SET_PDEATHSIG), so a killed run leaves no orphaned workers."""
     one_thread_per_process()
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
     if sys.platform.startswith("linux"):
         import ctypes
 

@@ -1,6 +1,7 @@
 """The sharded matching engine: local processes and a Dask cluster give exactly the single-process results."""
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -235,3 +236,22 @@ def test_jobs_are_capped_at_what_is_useful(tmp_path, monkeypatch):
     r = CliRunner().invoke(main, ["preprocess", str(scan), "-o", str(tmp_path / "p"), "--jobs", "100000"])
     assert r.output.count(f"warning: --jobs 100000: using {2 * JOBS_PER_CORE} processes") == 1, r.output
     assert "Too many open files" not in r.output
+
+
+def test_ctrl_c_ends_the_workers_quietly_and_the_engine_closes_with_the_interrupt(capfd):
+    """Ctrl-C reaches the whole process group: each idle worker printed a KeyboardInterrupt traceback and died, and
+    closing the engine then dropped its galleries from the dead workers, raising BrokenProcessPool over the
+    KeyboardInterrupt (4 tracebacks, exit code 1 instead of `interrupted`, 130). Now a worker ends quietly by the
+    signal, and a gallery whose workers died is released without them."""
+    import signal
+
+    with pytest.raises(KeyboardInterrupt):
+        with Engine.create(2) as engine:
+            engine.load(ICPMatcher(), [])
+            for ex in engine.executors:
+                for process in list(ex._processes.values()):
+                    os.kill(process.pid, signal.SIGINT)
+                    process.join()
+                    assert process.exitcode == -signal.SIGINT
+            raise KeyboardInterrupt
+    assert capfd.readouterr().err == ""
