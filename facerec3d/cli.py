@@ -1416,11 +1416,10 @@ def metrics(scores, fmt, higher_is_better, out, overwrite, bootstrap, seed):
 
     from facerec3d.evaluation.metrics import mates_not_compared
     from facerec3d.evaluation.provenance import provenance
-    from facerec3d.evaluation.report import claim_run_folder, write_run
+    from facerec3d.evaluation.report import run_folder, write_run
     from facerec3d.evaluation.scorefile import read_score_matrix
 
     m = read_score_matrix(scores, fmt, higher_is_better)
-    claim_run_folder(out, overwrite, keep=[scores])
     source = Path(scores).resolve()
     rerun = ["facerec3d", "metrics", source, "--format", fmt,
              "--higher-is-better" if higher_is_better else "--lower-is-better", "--out", Path(out).resolve(),
@@ -1428,8 +1427,10 @@ def metrics(scores, fmt, higher_is_better, out, overwrite, bootstrap, seed):
     info = {"scores": str(source), "scores_sha256": hashlib.sha256(source.read_bytes()).hexdigest(), "format": fmt,
             "score_direction": "higher is better" if higher_is_better else "lower is better (negated)",
             "n_gallery": int(m.S.shape[1]), "provenance": provenance(rerun)}
-    _print_metrics(write_run(out, m.S, m.probe_ids, m.probe_labels, m.gallery_ids, info, bootstrap=bootstrap,
-                             seed=seed, mateless=mates_not_compared(m.S, m.probe_ids, m.gallery_ids)))
+    with run_folder(out, overwrite, keep=[scores]) as work:
+        result = write_run(work, m.S, m.probe_ids, m.probe_labels, m.gallery_ids, info, bootstrap=bootstrap,
+                           seed=seed, mateless=mates_not_compared(m.S, m.probe_ids, m.gallery_ids))
+    _print_metrics(result)
     click.echo(f"report: {Path(out) / 'report.html'}")
 
 

@@ -5,6 +5,7 @@ Ctrl-C; the error layout; messages; the service's intrinsics as a file part; the
 import csv
 import gzip
 import json
+import os
 import re
 import subprocess
 import sys
@@ -234,6 +235,36 @@ def test_ctrl_c_exits_130_with_one_line(monkeypatch, tmp_path):
     monkeypatch.setattr(facerec3d.datasets.synthetic, "write_dataset", interrupted)
     r = CliRunner().invoke(main, ["synth", str(tmp_path / "d")])
     assert r.exit_code == 130 and r.output.strip() == "interrupted"
+
+
+def test_an_interrupted_run_leaves_no_part_of_itself(run, frames, tmp_path, monkeypatch):
+    """Ctrl-C while the plots were written left metrics.json and scores.txt but no report: a run that looked
+    complete, which a new run refused to replace ("holds a run already"). The run is written beside its folder
+    and moved in when complete: interrupted, it leaves nothing (nor its hidden folder) and the next run needs no
+    --overwrite. `metrics`, writing the same run folder, alike."""
+    import facerec3d.evaluation.report
+
+    out, _ = run
+    folder = tmp_path / "runs" / "icp"
+    real = facerec3d.evaluation.report.plot_det
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(facerec3d.evaluation.report, "plot_det", interrupted)
+    args = ["evaluate", str(frames), "--out", str(folder), "--jobs", "1", "--bootstrap", "0",
+            "--cache", str(out.parent / "cache")]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 130 and r.stderr.splitlines()[-1] == "interrupted", r.output
+    assert list((tmp_path / "runs").iterdir()) == []
+    r = CliRunner().invoke(main, ["metrics", str(out / "scores.txt"), "--out", str(folder), "--bootstrap", "0"])
+    assert r.exit_code == 130 and r.output == "interrupted\n", r.output
+    assert list((tmp_path / "runs").iterdir()) == []
+    monkeypatch.setattr(facerec3d.evaluation.report, "plot_det", real)
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == ["icp"]
+    assert {"metrics.json", "scores.txt", "report.html", "det.png", "method.json"} <= set(os.listdir(folder))
 
 
 def test_info_lays_out_errors_as_every_command_does(tmp_path, frames):
