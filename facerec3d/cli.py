@@ -323,11 +323,16 @@ def preprocess(inputs, outdir, overwrite, config_file, fmt, jobs, intrinsics):
                 w.writerow([outcome.path, outcome.error, ""] + [""] * (len(header) - 3))
                 continue
             target = out / f"{stem}.{fmt}"
-            save_scan(outcome.face, target)
             lm = landmarks_in_input_frame(outcome.face)
             coords = [f"{lm[n][k]:.3f}" if n in lm else "" for n in LANDMARK_COLUMNS for k in range(3)]
             quality = scan_quality(outcome.face)
-            w.writerow([outcome.path, "ok", str(target)] + coords + [quality.get(k, "") for k in QUALITY_FIELDS])
+            try:  # a face only with its row: interrupted in between (Ctrl-C), a face landmarks.csv did not list stayed
+                save_scan(outcome.face, target)
+                w.writerow([outcome.path, "ok", str(target)] + coords + [quality.get(k, "") for k in QUALITY_FIELDS])
+                f.flush()
+            except BaseException:
+                target.unlink(missing_ok=True)
+                raise
             tqdm.write(f"{outcome.path}: kept -> {target}")
     click.echo(f"{len(inputs) - failed} kept, {failed} failed; landmarks and quality in {out / 'landmarks.csv'}")
     if failed == len(inputs):

@@ -176,6 +176,30 @@ def test_preprocess_into_an_earlier_output_is_refused_without_overwrite(frames, 
         assert [row["output"] for row in csv.DictReader(f)] == [str(faces / "front_1.ply")]
 
 
+def test_an_interrupted_preprocess_leaves_only_faces_that_landmarks_csv_lists(frames, tmp_path, monkeypatch):
+    """Ctrl-C after a face was written and before its row left a face that landmarks.csv did not list (8 faces, 7
+    rows): a face is kept only with its row."""
+    import facerec3d.io
+
+    real, written = facerec3d.io.save_scan, []
+
+    def written_then_interrupted(face, path):
+        real(face, path)
+        written.append(path)
+        if len(written) == 2:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(facerec3d.io, "save_scan", written_then_interrupted)
+    faces = tmp_path / "faces"
+    r = CliRunner().invoke(main, ["preprocess", str(frames / "04200" / "front_1.png"),
+                                  str(frames / "04201" / "front_1.png"), "-o", str(faces), "--jobs", "1"])
+    assert r.exit_code == 130 and r.stderr.splitlines()[-1] == "interrupted", r.output
+    assert written == [faces / "04200_front_1.npz", faces / "04201_front_1.npz"]
+    with open(faces / "landmarks.csv") as f:
+        assert [row["output"] for row in csv.DictReader(f)] == [str(faces / "04200_front_1.npz")]
+    assert sorted(p.name for p in faces.iterdir()) == ["04200_front_1.npz", "landmarks.csv"]
+
+
 def test_preprocess_overwrite_of_an_unreadable_listing_is_one_line(tmp_path):
     """OUT's landmarks.csv with a field over the csv module's limit: one line naming it, not `_csv.Error: field
     larger than field limit`; nothing in OUT is touched."""
