@@ -1477,7 +1477,9 @@ def fuse(scores, out, fmt, normalisation, rule, weights, top, overwrite):
 
 @main.command()
 @click.option("--subjects", default=30, show_default=True, type=click.IntRange(min=2))
-@click.option("--scans", default=4, show_default=True, help="Scans per subject: neutral gallery, neutral, expression, ±25° yaw.")
+@click.option("--scans", default=4, show_default=True, type=click.IntRange(min=2),
+              help="Scans per subject: neutral gallery, neutral, expression, ±25° yaw (2 at least: a gallery scan and "
+                   "a probe).")
 @click.option("--methods", default="icp,region-icp,lda", show_default=True,
               help="Comma-separated methods to evaluate and compare (learnt ones get a disjoint training set).")
 @click.option("--out", "out", default="demo-out", show_default=True, type=click.Path(file_okay=False))
