@@ -202,7 +202,8 @@ def _capped_jobs(ctx, param, value: int | None) -> int | None:
 
 
 def _finite(value: float | None, name: str) -> float | None:
-    """A click option's float, refused (a usage error) when it is NaN or infinite: no score compares to NaN."""
+    """A click option's float, refused (a usage error) when it is NaN or infinite: no score compares to NaN (and NaN
+    passes click's FloatRange)."""
     import math
 
     if value is not None and not math.isfinite(value):
@@ -1023,6 +1024,7 @@ def _threshold_line(r: dict, where) -> str:
 @gallery.command("calibrate")
 @click.argument("data", nargs=-1, type=click.Path(exists=True))
 @click.option("--fmr", type=click.FloatRange(0.0, 1.0, min_open=True), default=0.01, show_default=True,
+              callback=lambda ctx, param, v: _finite(v, "--fmr"),
               help="False-match rate the threshold keeps.")
 @click.option("--eer", is_flag=True, help="Threshold at the equal error rate instead (needs two scans of some "
               "subjects).")

@@ -242,6 +242,16 @@ def test_demo_refuses_too_few_scans_for_a_protocol_before_any_work(tmp_path, sca
     assert not out.exists()
 
 
+def test_calibrate_refuses_an_fmr_that_is_no_number_as_a_usage_error(tmp_path):
+    """`gallery G calibrate --fmr nan` passed click's range check and died on "G: cannot convert float NaN to
+    integer", blaming the store: a usage error naming --fmr now, before the store is opened."""
+    r = CliRunner().invoke(main, ["gallery", str(tmp_path / "g.sqlite"), "calibrate", "--fmr", "nan"],
+                           prog_name="facerec3d")
+    assert r.exit_code == 2 and r.output == ("error: Invalid value for --fmr: must be a finite number, not nan "
+                                             "(see facerec3d gallery [STORE] calibrate --help)\n"), r.output
+    assert not (tmp_path / "g.sqlite").exists()
+
+
 @pytest.mark.parametrize("args, refused", [
     (["gallery", "{g}", "calibrate", "--eer", "--fmr", "0.1"], "--fmr cannot be used with --eer"),
     (["identify", "{p}", "--gallery", "{g}", "--shortlist", "5"], "--shortlist works with --cascade only"),
