@@ -2,6 +2,8 @@
 
 import json
 import os
+import signal
+from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 import pytest
@@ -11,6 +13,7 @@ from facerec3d.gallery.cascade import CascadeConfig
 from facerec3d.gallery.engine import Engine
 from facerec3d.matching.base import rank
 from facerec3d.matching.icp import ICPMatcher
+from facerec3d.workers import Workers
 from tests.conftest import model_face
 
 N_GALLERY = 7
@@ -238,20 +241,50 @@ def test_jobs_are_capped_at_what_is_useful(tmp_path, monkeypatch):
     assert "Too many open files" not in r.output
 
 
-def test_ctrl_c_ends_the_workers_quietly_and_the_engine_closes_with_the_interrupt(capfd):
-    """Ctrl-C reaches the whole process group: each idle worker printed a KeyboardInterrupt traceback and died, and
-    closing the engine then dropped its galleries from the dead workers, raising BrokenProcessPool over the
-    KeyboardInterrupt (4 tracebacks, exit code 1 instead of `interrupted`, 130). Now a worker ends quietly by the
-    signal, and a gallery whose workers died is released without them."""
-    import signal
+def _interrupted():
+    os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C reaching a worker while it computes
 
+
+class _SentWhileInterrupted:
+    """A result whose sending back (pickling) meets Ctrl-C."""
+
+    def __reduce__(self):
+        os.kill(os.getpid(), signal.SIGINT)
+        return _SentWhileInterrupted, ()
+
+
+def _result_sent_while_interrupted() -> _SentWhileInterrupted:
+    return _SentWhileInterrupted()
+
+
+def test_ctrl_c_ends_a_computing_worker_quietly_and_the_engine_closes_with_the_interrupt(capfd):
+    """Ctrl-C reaches the whole process group: each worker printed a KeyboardInterrupt traceback, and closing the
+    engine then dropped its galleries from the dead workers, raising BrokenProcessPool over the KeyboardInterrupt
+    (4 tracebacks, exit code 1 instead of `interrupted`, 130). A computing worker now ends at once by the signal,
+    without a word, and a gallery whose workers died is released without them."""
     with pytest.raises(KeyboardInterrupt):
         with Engine.create(2) as engine:
             engine.load(ICPMatcher(), [])
+            processes = [p for ex in engine.executors for p in ex._processes.values()]
             for ex in engine.executors:
-                for process in list(ex._processes.values()):
-                    os.kill(process.pid, signal.SIGINT)
-                    process.join()
-                    assert process.exitcode == -signal.SIGINT
+                with pytest.raises(BrokenProcessPool):
+                    ex.submit(_interrupted).result()
             raise KeyboardInterrupt
+    assert [p.exitcode for p in processes] == [-signal.SIGINT] * 2  # (joined by the pools as they closed)
+    assert capfd.readouterr().err == ""
+
+
+def test_ctrl_c_never_ends_a_worker_while_it_sends_a_result_back(capfd):
+    """A worker that Ctrl-C killed half-way through sending a result back left the run reading the rest forever (a
+    hang after Ctrl-C). Met while a worker sends a result or waits for work, Ctrl-C is noted: the result arrives
+    whole, and the worker ends (quietly) before its next call."""
+    with Workers.create(2) as workers:
+        sending, waiting = workers.executors
+        assert isinstance(sending.submit(_result_sent_while_interrupted).result(), _SentWhileInterrupted)
+        os.kill(waiting.submit(os.getpid).result(), signal.SIGINT)
+        processes = [p for ex in workers.executors for p in ex._processes.values()]
+        for ex in workers.executors:
+            with pytest.raises(BrokenProcessPool):
+                ex.submit(os.getpid).result()
+    assert [p.exitcode for p in processes] == [128 + signal.SIGINT] * 2
     assert capfd.readouterr().err == ""
