@@ -295,6 +295,8 @@ def preprocess(inputs, outdir, overwrite, config_file, fmt, jobs, intrinsics):
     with OUT/landmarks.csv (chapter §8.5). Outputs are named after the inputs; when files of several folders share
     a name, after folder and file (s000/front_1.png gives s000_front_1.npz). An OUT holding an earlier
     preprocess's output is refused unless --overwrite. Exit code 1 when no scan could be used."""
+    from contextlib import closing
+
     from tqdm import tqdm
 
     from facerec3d.evaluation.report import claim_run_folder
@@ -312,11 +314,13 @@ def preprocess(inputs, outdir, overwrite, config_file, fmt, jobs, intrinsics):
     header = (["scan", "status", "output"] + [f"{n}_{'xyz'[k]}" for n in LANDMARK_COLUMNS for k in range(3)]
               + list(QUALITY_FIELDS))
     failed = 0
-    with open(out / "landmarks.csv", "w", newline="") as f:
+    # the batch's worker processes shut down here, not when its generator is collected (a Ctrl-C then was an
+    # "Exception ignored" traceback, exit code 0)
+    with open(out / "landmarks.csv", "w", newline="") as f, \
+            closing(preprocess_files(inputs, config, jobs=jobs, intrinsics=intrinsics)) as outcomes:
         w = csv.writer(f)
         w.writerow(header)
-        bar = tqdm(preprocess_files(inputs, config, jobs=jobs, intrinsics=intrinsics), total=len(inputs), unit="scan",
-                   desc="preprocessing")
+        bar = tqdm(outcomes, total=len(inputs), unit="scan", desc="preprocessing")
         for stem, outcome in zip(unique_stems(inputs), bar):
             if outcome.face is None:
                 failed += 1

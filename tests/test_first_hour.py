@@ -200,6 +200,23 @@ def test_an_interrupted_preprocess_leaves_only_faces_that_landmarks_csv_lists(fr
     assert sorted(p.name for p in faces.iterdir()) == ["04200_front_1.npz", "landmarks.csv"]
 
 
+def test_preprocess_interrupted_while_its_workers_shut_down_is_interrupted(frames, tmp_path, monkeypatch):
+    """The batch's workers were shut down when its generator was collected, after the command: Ctrl-C then was an
+    "Exception ignored" traceback and exit code 0. They shut down within the command: `interrupted`, 130."""
+    from facerec3d.workers import Workers
+
+    real = Workers.close
+
+    def interrupted(self):
+        real(self)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Workers, "close", interrupted)
+    faces = tmp_path / "faces"
+    r = CliRunner().invoke(main, ["preprocess", str(frames / "04200" / "front_1.png"), "-o", str(faces)])
+    assert r.exit_code == 130 and r.stderr.splitlines()[-1] == "interrupted", r.output
+
+
 def test_preprocess_overwrite_of_an_unreadable_listing_is_one_line(tmp_path):
     """OUT's landmarks.csv with a field over the csv module's limit: one line naming it, not `_csv.Error: field
     larger than field limit`; nothing in OUT is touched."""
