@@ -51,10 +51,12 @@ def one_thread_per_process() -> None:
 
 
 def _init_worker() -> None:
-    """Process-pool worker start: one BLAS thread; Ctrl-C handled as `_call` says; on Linux, die with the parent
-    process (PR_SET_PDEATHSIG), so a killed run leaves no orphaned workers."""
-    one_thread_per_process()
+    """Process-pool worker start: Ctrl-C handled as `_call` says (the worker starts with SIGINT held, `_WorkerPool`,
+    until the handler is in place); one BLAS thread; on Linux, die with the parent process (PR_SET_PDEATHSIG), so a
+    killed run leaves no orphaned workers."""
     signal.signal(signal.SIGINT, _note_interrupt)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    one_thread_per_process()
     if sys.platform.startswith("linux"):
         import ctypes
 
@@ -85,10 +87,16 @@ def _call(fn: Callable, /, *args: Any, **kwargs: Any) -> Any:
 
 
 class _WorkerPool(ProcessPoolExecutor):
-    """A local worker: a process pool whose calls run through `_call`."""
+    """A local worker: a process pool whose calls run through `_call`. A submit may start the worker process: it
+    does so with SIGINT held, which the process inherits until `_init_worker` has put its handler in place (Ctrl-C
+    while a worker started was a KeyboardInterrupt traceback of the worker's)."""
 
     def submit(self, fn, /, *args, **kwargs) -> Future:
-        return super().submit(_call, fn, *args, **kwargs)
+        held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            return super().submit(_call, fn, *args, **kwargs)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)
 
 
 class InlineExecutor(Executor):

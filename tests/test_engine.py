@@ -288,3 +288,24 @@ def test_ctrl_c_never_ends_a_worker_while_it_sends_a_result_back(capfd):
                 ex.submit(os.getpid).result()
     assert [p.exitcode for p in processes] == [128 + signal.SIGINT] * 2
     assert capfd.readouterr().err == ""
+
+
+def test_ctrl_c_while_a_worker_starts_is_noted_quietly(tmp_path, monkeypatch, capfd):
+    """Ctrl-C while a worker started (threadpoolctl's look at the BLAS libraries in its initializer takes a while)
+    was a KeyboardInterrupt traceback of the worker's ("Exception in initializer"). A worker starts with SIGINT held
+    until its handler is in place; met there, Ctrl-C is noted and the worker ends, quietly, before its first call."""
+    import facerec3d.workers
+
+    real, held = facerec3d.workers._init_worker, tmp_path / "held"
+
+    def starting():
+        held.write_text(str(signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, [])))
+        real()
+
+    monkeypatch.setattr(facerec3d.workers, "_init_worker", starting)
+    monkeypatch.setattr(facerec3d.workers, "one_thread_per_process", lambda: os.kill(os.getpid(), signal.SIGINT))
+    with Workers.create(2) as workers:
+        with pytest.raises(BrokenProcessPool):
+            workers.executors[0].submit(os.getpid).result()
+    assert held.read_text() == "True"
+    assert capfd.readouterr().err == ""
