@@ -68,7 +68,10 @@ class _Main(click.Group):
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, ImportError) as e:
+            # Ctrl-C while a compiled module loads (scipy's pybind11 ones) is "initialization failed" from it
+            if isinstance(e, ImportError) and not isinstance(e.__cause__, KeyboardInterrupt):
+                raise
             click.echo("interrupted", err=True)
             raise click.exceptions.Exit(EXIT_INTERRUPTED) from None
         except BrokenPipeError:

@@ -278,6 +278,22 @@ def test_ctrl_c_exits_130_with_one_line(monkeypatch, tmp_path):
     assert r.exit_code == 130 and r.output.strip() == "interrupted"
 
 
+def test_ctrl_c_while_a_compiled_module_loads_exits_130_with_one_line(monkeypatch, tmp_path):
+    """A compiled module (scipy's pybind11 ones) that Ctrl-C stops while it loads raises ImportError "initialization
+    failed" from the KeyboardInterrupt: that was a traceback and exit code 1 (commands import as they start)."""
+    import facerec3d.datasets.synthetic
+
+    def interrupted(*args, **kwargs):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as e:
+            raise ImportError("initialization failed") from e
+
+    monkeypatch.setattr(facerec3d.datasets.synthetic, "write_dataset", interrupted)
+    r = CliRunner().invoke(main, ["synth", str(tmp_path / "d")])
+    assert r.exit_code == 130 and r.output == "interrupted\n", r.output
+
+
 def test_an_interrupted_run_leaves_no_part_of_itself(run, frames, tmp_path, monkeypatch):
     """Ctrl-C while the plots were written left metrics.json and scores.txt but no report: a run that looked
     complete, which a new run refused to replace ("holds a run already"). The run is written beside its folder
