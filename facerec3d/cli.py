@@ -68,7 +68,10 @@ class _Main(click.Group):
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, ImportError) as e:
+            # Ctrl-C while a compiled module loads (scipy's pybind11 ones) is "initialization failed" from it
+            if isinstance(e, ImportError) and not isinstance(e.__cause__, KeyboardInterrupt):
+                raise
             click.echo("interrupted", err=True)
             raise click.exceptions.Exit(EXIT_INTERRUPTED) from None
         except BrokenPipeError:
@@ -202,7 +205,8 @@ def _capped_jobs(ctx, param, value: int | None) -> int | None:
 
 
 def _finite(value: float | None, name: str) -> float | None:
-    """A click option's float, refused (a usage error) when it is NaN or infinite: no score compares to NaN."""
+    """A click option's float, refused (a usage error) when it is NaN or infinite: no score compares to NaN (and NaN
+    passes click's FloatRange)."""
     import math
 
     if value is not None and not math.isfinite(value):
@@ -294,6 +298,8 @@ def preprocess(inputs, outdir, overwrite, config_file, fmt, jobs, intrinsics):
     with OUT/landmarks.csv (chapter §8.5). Outputs are named after the inputs; when files of several folders share
     a name, after folder and file (s000/front_1.png gives s000_front_1.npz). An OUT holding an earlier
     preprocess's output is refused unless --overwrite. Exit code 1 when no scan could be used."""
+    from contextlib import closing
+
     from tqdm import tqdm
 
     from facerec3d.evaluation.report import claim_run_folder
@@ -311,11 +317,13 @@ def preprocess(inputs, outdir, overwrite, config_file, fmt, jobs, intrinsics):
     header = (["scan", "status", "output"] + [f"{n}_{'xyz'[k]}" for n in LANDMARK_COLUMNS for k in range(3)]
               + list(QUALITY_FIELDS))
     failed = 0
-    with open(out / "landmarks.csv", "w", newline="") as f:
+    # the batch's worker processes shut down here, not when its generator is collected (a Ctrl-C then was an
+    # "Exception ignored" traceback, exit code 0)
+    with open(out / "landmarks.csv", "w", newline="") as f, \
+            closing(preprocess_files(inputs, config, jobs=jobs, intrinsics=intrinsics)) as outcomes:
         w = csv.writer(f)
         w.writerow(header)
-        bar = tqdm(preprocess_files(inputs, config, jobs=jobs, intrinsics=intrinsics), total=len(inputs), unit="scan",
-                   desc="preprocessing")
+        bar = tqdm(outcomes, total=len(inputs), unit="scan", desc="preprocessing")
         for stem, outcome in zip(unique_stems(inputs), bar):
             if outcome.face is None:
                 failed += 1
@@ -323,11 +331,16 @@ def preprocess(inputs, outdir, overwrite, config_file, fmt, jobs, intrinsics):
                 w.writerow([outcome.path, outcome.error, ""] + [""] * (len(header) - 3))
                 continue
             target = out / f"{stem}.{fmt}"
-            save_scan(outcome.face, target)
             lm = landmarks_in_input_frame(outcome.face)
             coords = [f"{lm[n][k]:.3f}" if n in lm else "" for n in LANDMARK_COLUMNS for k in range(3)]
             quality = scan_quality(outcome.face)
-            w.writerow([outcome.path, "ok", str(target)] + coords + [quality.get(k, "") for k in QUALITY_FIELDS])
+            try:  # a face only with its row: interrupted in between (Ctrl-C), a face landmarks.csv did not list stayed
+                save_scan(outcome.face, target)
+                w.writerow([outcome.path, "ok", str(target)] + coords + [quality.get(k, "") for k in QUALITY_FIELDS])
+                f.flush()
+            except BaseException:
+                target.unlink(missing_ok=True)
+                raise
             tqdm.write(f"{outcome.path}: kept -> {target}")
     click.echo(f"{len(inputs) - failed} kept, {failed} failed; landmarks and quality in {out / 'landmarks.csv'}")
     if failed == len(inputs):
@@ -1018,6 +1031,7 @@ def _threshold_line(r: dict, where) -> str:
 @gallery.command("calibrate")
 @click.argument("data", nargs=-1, type=click.Path(exists=True))
 @click.option("--fmr", type=click.FloatRange(0.0, 1.0, min_open=True), default=0.01, show_default=True,
+              callback=lambda ctx, param, v: _finite(v, "--fmr"),
               help="False-match rate the threshold keeps.")
 @click.option("--eer", is_flag=True, help="Threshold at the equal error rate instead (needs two scans of some "
               "subjects).")
@@ -1416,11 +1430,10 @@ def metrics(scores, fmt, higher_is_better, out, overwrite, bootstrap, seed):
 
     from facerec3d.evaluation.metrics import mates_not_compared
     from facerec3d.evaluation.provenance import provenance
-    from facerec3d.evaluation.report import claim_run_folder, write_run
+    from facerec3d.evaluation.report import run_folder, write_run
     from facerec3d.evaluation.scorefile import read_score_matrix
 
     m = read_score_matrix(scores, fmt, higher_is_better)
-    claim_run_folder(out, overwrite, keep=[scores])
     source = Path(scores).resolve()
     rerun = ["facerec3d", "metrics", source, "--format", fmt,
              "--higher-is-better" if higher_is_better else "--lower-is-better", "--out", Path(out).resolve(),
@@ -1428,8 +1441,10 @@ def metrics(scores, fmt, higher_is_better, out, overwrite, bootstrap, seed):
     info = {"scores": str(source), "scores_sha256": hashlib.sha256(source.read_bytes()).hexdigest(), "format": fmt,
             "score_direction": "higher is better" if higher_is_better else "lower is better (negated)",
             "n_gallery": int(m.S.shape[1]), "provenance": provenance(rerun)}
-    _print_metrics(write_run(out, m.S, m.probe_ids, m.probe_labels, m.gallery_ids, info, bootstrap=bootstrap,
-                             seed=seed, mateless=mates_not_compared(m.S, m.probe_ids, m.gallery_ids)))
+    with run_folder(out, overwrite, keep=[scores]) as work:
+        result = write_run(work, m.S, m.probe_ids, m.probe_labels, m.gallery_ids, info, bootstrap=bootstrap,
+                           seed=seed, mateless=mates_not_compared(m.S, m.probe_ids, m.gallery_ids))
+    _print_metrics(result)
     click.echo(f"report: {Path(out) / 'report.html'}")
 
 
@@ -1471,7 +1486,9 @@ def fuse(scores, out, fmt, normalisation, rule, weights, top, overwrite):
 
 @main.command()
 @click.option("--subjects", default=30, show_default=True, type=click.IntRange(min=2))
-@click.option("--scans", default=4, show_default=True, help="Scans per subject: neutral gallery, neutral, expression, ±25° yaw.")
+@click.option("--scans", default=4, show_default=True, type=click.IntRange(min=2),
+              help="Scans per subject: neutral gallery, neutral, expression, ±25° yaw (2 at least: a gallery scan and "
+                   "a probe).")
 @click.option("--methods", default="icp,region-icp,lda", show_default=True,
               help="Comma-separated methods to evaluate and compare (learnt ones get a disjoint training set).")
 @click.option("--out", "out", default="demo-out", show_default=True, type=click.Path(file_okay=False))

@@ -51,13 +51,52 @@ def one_thread_per_process() -> None:
 
 
 def _init_worker() -> None:
-    """Process-pool worker start: one BLAS thread; on Linux, die with the parent process (PR_SET_PDEATHSIG),
-    so a killed run leaves no orphaned workers."""
+    """Process-pool worker start: Ctrl-C handled as `_call` says (the worker starts with SIGINT held, `_WorkerPool`,
+    until the handler is in place); one BLAS thread; on Linux, die with the parent process (PR_SET_PDEATHSIG), so a
+    killed run leaves no orphaned workers."""
+    signal.signal(signal.SIGINT, _note_interrupt)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     one_thread_per_process()
     if sys.platform.startswith("linux"):
         import ctypes
 
         ctypes.CDLL(None).prctl(1, signal.SIGKILL)
+
+
+_interrupted = False  # in a worker process: Ctrl-C came while it was not computing
+
+
+def _note_interrupt(signum, frame) -> None:
+    global _interrupted
+    _interrupted = True
+
+
+def _call(fn: Callable, /, *args: Any, **kwargs: Any) -> Any:
+    """fn(*args, **kwargs) in a local worker process. Ctrl-C (SIGINT, sent to the whole process group) ends the
+    worker at once, quietly (the parent alone says `interrupted`), while it computes; while it waits for work or
+    hands a result back it is only noted, and ends the worker before its next call (the parent, interrupted too,
+    shuts the pool down). A worker killed half-way through sending a result left the parent waiting for the rest
+    forever; and each worker printed a KeyboardInterrupt traceback."""
+    if _interrupted:
+        os._exit(128 + signal.SIGINT)
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    try:
+        return fn(*args, **kwargs)
+    finally:
+        signal.signal(signal.SIGINT, _note_interrupt)
+
+
+class _WorkerPool(ProcessPoolExecutor):
+    """A local worker: a process pool whose calls run through `_call`. A submit may start the worker process: it
+    does so with SIGINT held, which the process inherits until `_init_worker` has put its handler in place (Ctrl-C
+    while a worker started was a KeyboardInterrupt traceback of the worker's)."""
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            return super().submit(_call, fn, *args, **kwargs)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)
 
 
 class InlineExecutor(Executor):
@@ -115,7 +154,7 @@ class Workers:
         jobs = useful_jobs(jobs, items)
         if jobs <= 1:
             return cls([InlineExecutor()])
-        return cls([ProcessPoolExecutor(1, initializer=_init_worker) for _ in range(jobs)])
+        return cls([_WorkerPool(1, initializer=_init_worker) for _ in range(jobs)])
 
     def __enter__(self):
         return self
@@ -146,7 +185,7 @@ class Workers:
         import multiprocessing
 
         old = self.executors[i]
-        new = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker)
+        new = _WorkerPool(1, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker)
         new.submit(os.getpid).result()  # started and ready
         self.executors[i] = new
         old.shutdown(wait=False, cancel_futures=True)

@@ -223,10 +223,33 @@ def test_train_given_to_a_method_that_learns_nothing_is_a_warning_not_silence(le
 def test_demo_refuses_no_methods_before_any_work(tmp_path, methods):
     """`demo --methods ""` synthesised the data first, then failed with "no run folders to compare"."""
     out = tmp_path / "demo"
-    r = CliRunner().invoke(main, ["demo", "--subjects", "2", "--scans", "1", "--methods", methods, "--out", str(out)])
+    r = CliRunner().invoke(main, ["demo", "--subjects", "2", "--scans", "2", "--methods", methods, "--out", str(out)])
     assert r.exit_code == 2 and r.output.count("\n") == 1, r.output
     assert r.output.startswith("error: Invalid value for --methods: ") and "names no method" in r.output
     assert not out.exists()
+
+
+@pytest.mark.parametrize("scans", ["1", "0", "-1"])
+def test_demo_refuses_too_few_scans_for_a_protocol_before_any_work(tmp_path, scans):
+    """`demo --scans 0` (or -1) synthesised nothing and then failed on the missing manifest.csv; `--scans 1` gave no
+    probe ("all probes 0") with exit code 0. A protocol needs a gallery scan and a probe: a usage error, as
+    synth's --scans."""
+    out = tmp_path / "demo"
+    r = CliRunner().invoke(main, ["demo", "--subjects", "2", "--scans", scans, "--methods", "icp", "--out", str(out)],
+                           prog_name="facerec3d")
+    assert r.exit_code == 2 and r.output == (f"error: Invalid value for '--scans': {scans} is not in the range x>=2. "
+                                             "(see facerec3d demo --help)\n"), r.output
+    assert not out.exists()
+
+
+def test_calibrate_refuses_an_fmr_that_is_no_number_as_a_usage_error(tmp_path):
+    """`gallery G calibrate --fmr nan` passed click's range check and died on "G: cannot convert float NaN to
+    integer", blaming the store: a usage error naming --fmr now, before the store is opened."""
+    r = CliRunner().invoke(main, ["gallery", str(tmp_path / "g.sqlite"), "calibrate", "--fmr", "nan"],
+                           prog_name="facerec3d")
+    assert r.exit_code == 2 and r.output == ("error: Invalid value for --fmr: must be a finite number, not nan "
+                                             "(see facerec3d gallery [STORE] calibrate --help)\n"), r.output
+    assert not (tmp_path / "g.sqlite").exists()
 
 
 @pytest.mark.parametrize("args, refused", [

@@ -1,6 +1,9 @@
 """The sharded matching engine: local processes and a Dask cluster give exactly the single-process results."""
 
 import json
+import os
+import signal
+from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 import pytest
@@ -10,6 +13,7 @@ from facerec3d.gallery.cascade import CascadeConfig
 from facerec3d.gallery.engine import Engine
 from facerec3d.matching.base import rank
 from facerec3d.matching.icp import ICPMatcher
+from facerec3d.workers import Workers
 from tests.conftest import model_face
 
 N_GALLERY = 7
@@ -235,3 +239,73 @@ def test_jobs_are_capped_at_what_is_useful(tmp_path, monkeypatch):
     r = CliRunner().invoke(main, ["preprocess", str(scan), "-o", str(tmp_path / "p"), "--jobs", "100000"])
     assert r.output.count(f"warning: --jobs 100000: using {2 * JOBS_PER_CORE} processes") == 1, r.output
     assert "Too many open files" not in r.output
+
+
+def _interrupted():
+    os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C reaching a worker while it computes
+
+
+class _SentWhileInterrupted:
+    """A result whose sending back (pickling) meets Ctrl-C."""
+
+    def __reduce__(self):
+        os.kill(os.getpid(), signal.SIGINT)
+        return _SentWhileInterrupted, ()
+
+
+def _result_sent_while_interrupted() -> _SentWhileInterrupted:
+    return _SentWhileInterrupted()
+
+
+def test_ctrl_c_ends_a_computing_worker_quietly_and_the_engine_closes_with_the_interrupt(capfd):
+    """Ctrl-C reaches the whole process group: each worker printed a KeyboardInterrupt traceback, and closing the
+    engine then dropped its galleries from the dead workers, raising BrokenProcessPool over the KeyboardInterrupt
+    (4 tracebacks, exit code 1 instead of `interrupted`, 130). A computing worker now ends at once by the signal,
+    without a word, and a gallery whose workers died is released without them."""
+    with pytest.raises(KeyboardInterrupt):
+        with Engine.create(2) as engine:
+            engine.load(ICPMatcher(), [])
+            processes = [p for ex in engine.executors for p in ex._processes.values()]
+            for ex in engine.executors:
+                with pytest.raises(BrokenProcessPool):
+                    ex.submit(_interrupted).result()
+            raise KeyboardInterrupt
+    assert [p.exitcode for p in processes] == [-signal.SIGINT] * 2  # (joined by the pools as they closed)
+    assert capfd.readouterr().err == ""
+
+
+def test_ctrl_c_never_ends_a_worker_while_it_sends_a_result_back(capfd):
+    """A worker that Ctrl-C killed half-way through sending a result back left the run reading the rest forever (a
+    hang after Ctrl-C). Met while a worker sends a result or waits for work, Ctrl-C is noted: the result arrives
+    whole, and the worker ends (quietly) before its next call."""
+    with Workers.create(2) as workers:
+        sending, waiting = workers.executors
+        assert isinstance(sending.submit(_result_sent_while_interrupted).result(), _SentWhileInterrupted)
+        os.kill(waiting.submit(os.getpid).result(), signal.SIGINT)
+        processes = [p for ex in workers.executors for p in ex._processes.values()]
+        for ex in workers.executors:
+            with pytest.raises(BrokenProcessPool):
+                ex.submit(os.getpid).result()
+    assert [p.exitcode for p in processes] == [128 + signal.SIGINT] * 2
+    assert capfd.readouterr().err == ""
+
+
+def test_ctrl_c_while_a_worker_starts_is_noted_quietly(tmp_path, monkeypatch, capfd):
+    """Ctrl-C while a worker started (threadpoolctl's look at the BLAS libraries in its initializer takes a while)
+    was a KeyboardInterrupt traceback of the worker's ("Exception in initializer"). A worker starts with SIGINT held
+    until its handler is in place; met there, Ctrl-C is noted and the worker ends, quietly, before its first call."""
+    import facerec3d.workers
+
+    real, held = facerec3d.workers._init_worker, tmp_path / "held"
+
+    def starting():
+        held.write_text(str(signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, [])))
+        real()
+
+    monkeypatch.setattr(facerec3d.workers, "_init_worker", starting)
+    monkeypatch.setattr(facerec3d.workers, "one_thread_per_process", lambda: os.kill(os.getpid(), signal.SIGINT))
+    with Workers.create(2) as workers:
+        with pytest.raises(BrokenProcessPool):
+            workers.executors[0].submit(os.getpid).result()
+    assert held.read_text() == "True"
+    assert capfd.readouterr().err == ""

@@ -5,6 +5,7 @@ Ctrl-C; the error layout; messages; the service's intrinsics as a file part; the
 import csv
 import gzip
 import json
+import os
 import re
 import subprocess
 import sys
@@ -175,6 +176,47 @@ def test_preprocess_into_an_earlier_output_is_refused_without_overwrite(frames, 
         assert [row["output"] for row in csv.DictReader(f)] == [str(faces / "front_1.ply")]
 
 
+def test_an_interrupted_preprocess_leaves_only_faces_that_landmarks_csv_lists(frames, tmp_path, monkeypatch):
+    """Ctrl-C after a face was written and before its row left a face that landmarks.csv did not list (8 faces, 7
+    rows): a face is kept only with its row."""
+    import facerec3d.io
+
+    real, written = facerec3d.io.save_scan, []
+
+    def written_then_interrupted(face, path):
+        real(face, path)
+        written.append(path)
+        if len(written) == 2:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(facerec3d.io, "save_scan", written_then_interrupted)
+    faces = tmp_path / "faces"
+    r = CliRunner().invoke(main, ["preprocess", str(frames / "04200" / "front_1.png"),
+                                  str(frames / "04201" / "front_1.png"), "-o", str(faces), "--jobs", "1"])
+    assert r.exit_code == 130 and r.stderr.splitlines()[-1] == "interrupted", r.output
+    assert written == [faces / "04200_front_1.npz", faces / "04201_front_1.npz"]
+    with open(faces / "landmarks.csv") as f:
+        assert [row["output"] for row in csv.DictReader(f)] == [str(faces / "04200_front_1.npz")]
+    assert sorted(p.name for p in faces.iterdir()) == ["04200_front_1.npz", "landmarks.csv"]
+
+
+def test_preprocess_interrupted_while_its_workers_shut_down_is_interrupted(frames, tmp_path, monkeypatch):
+    """The batch's workers were shut down when its generator was collected, after the command: Ctrl-C then was an
+    "Exception ignored" traceback and exit code 0. They shut down within the command: `interrupted`, 130."""
+    from facerec3d.workers import Workers
+
+    real = Workers.close
+
+    def interrupted(self):
+        real(self)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Workers, "close", interrupted)
+    faces = tmp_path / "faces"
+    r = CliRunner().invoke(main, ["preprocess", str(frames / "04200" / "front_1.png"), "-o", str(faces)])
+    assert r.exit_code == 130 and r.stderr.splitlines()[-1] == "interrupted", r.output
+
+
 def test_preprocess_overwrite_of_an_unreadable_listing_is_one_line(tmp_path):
     """OUT's landmarks.csv with a field over the csv module's limit: one line naming it, not `_csv.Error: field
     larger than field limit`; nothing in OUT is touched."""
@@ -234,6 +276,52 @@ def test_ctrl_c_exits_130_with_one_line(monkeypatch, tmp_path):
     monkeypatch.setattr(facerec3d.datasets.synthetic, "write_dataset", interrupted)
     r = CliRunner().invoke(main, ["synth", str(tmp_path / "d")])
     assert r.exit_code == 130 and r.output.strip() == "interrupted"
+
+
+def test_ctrl_c_while_a_compiled_module_loads_exits_130_with_one_line(monkeypatch, tmp_path):
+    """A compiled module (scipy's pybind11 ones) that Ctrl-C stops while it loads raises ImportError "initialization
+    failed" from the KeyboardInterrupt: that was a traceback and exit code 1 (commands import as they start)."""
+    import facerec3d.datasets.synthetic
+
+    def interrupted(*args, **kwargs):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as e:
+            raise ImportError("initialization failed") from e
+
+    monkeypatch.setattr(facerec3d.datasets.synthetic, "write_dataset", interrupted)
+    r = CliRunner().invoke(main, ["synth", str(tmp_path / "d")])
+    assert r.exit_code == 130 and r.output == "interrupted\n", r.output
+
+
+def test_an_interrupted_run_leaves_no_part_of_itself(run, frames, tmp_path, monkeypatch):
+    """Ctrl-C while the plots were written left metrics.json and scores.txt but no report: a run that looked
+    complete, which a new run refused to replace ("holds a run already"). The run is written beside its folder
+    and moved in when complete: interrupted, it leaves nothing (nor its hidden folder) and the next run needs no
+    --overwrite. `metrics`, writing the same run folder, alike."""
+    import facerec3d.evaluation.report
+
+    out, _ = run
+    folder = tmp_path / "runs" / "icp"
+    real = facerec3d.evaluation.report.plot_det
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(facerec3d.evaluation.report, "plot_det", interrupted)
+    args = ["evaluate", str(frames), "--out", str(folder), "--jobs", "1", "--bootstrap", "0",
+            "--cache", str(out.parent / "cache")]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 130 and r.stderr.splitlines()[-1] == "interrupted", r.output
+    assert list((tmp_path / "runs").iterdir()) == []
+    r = CliRunner().invoke(main, ["metrics", str(out / "scores.txt"), "--out", str(folder), "--bootstrap", "0"])
+    assert r.exit_code == 130 and r.output == "interrupted\n", r.output
+    assert list((tmp_path / "runs").iterdir()) == []
+    monkeypatch.setattr(facerec3d.evaluation.report, "plot_det", real)
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == ["icp"]
+    assert {"metrics.json", "scores.txt", "report.html", "det.png", "method.json"} <= set(os.listdir(folder))
 
 
 def test_info_lays_out_errors_as_every_command_does(tmp_path, frames):

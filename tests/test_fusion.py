@@ -193,3 +193,17 @@ def test_galleries_stored_before_the_plane_capped_score_keep_the_books_score(tmp
     assert caps(old) == [0.0, 0.0]
     assert stored_matcher("fusion", old.options()).options() == old.options()  # and it stays so when stored again
     assert caps(make_matcher("fusion", {"member_options": {}})) == [3.0, 3.0]
+
+
+@pytest.mark.parametrize("weights", ["[1, 2]", "[0, 0, 0]"])
+def test_a_method_config_with_weights_its_rule_ignores_is_refused(tmp_path, weights):
+    """`weights` with the sum rule in a --method-config file (too few of them, or all 0) was taken and the weights
+    silently ignored; `fuse --weights` refused it. The fusion config refuses it alike: one line naming the file and
+    the setting."""
+    from facerec3d.errors import SettingsError
+
+    path = tmp_path / "fusion.toml"
+    path.write_text(f'members = ["icp", "region-icp", "embedding"]\nrule = "sum"\nweights = {weights}\n')
+    with pytest.raises(SettingsError) as e:
+        make_matcher("fusion", read_settings(path))
+    assert str(e.value) == f"{path}: weights are for the weighted-sum rule: sum does not use them"

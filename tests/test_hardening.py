@@ -827,14 +827,14 @@ def test_demo_makes_its_data_again_when_the_sizes_change(tmp_path, monkeypatch):
         assert r.exit_code == 0, r.output
         return r.output, (out / "data" / "manifest.csv").read_text().count("\n") - 1
 
-    output, n = demo(2, 1)
-    assert "synthesising data: 2 subjects x 1 scans" in output and n == 2
-    output, n = demo(2, 1)
-    assert "synthesising" not in output and n == 2  # same settings: reused
-    output, n = demo(3, 1)
-    assert "made with other settings: synthesising it again" in output and n == 3
+    output, n = demo(2, 2)
+    assert "synthesising data: 2 subjects x 2 scans" in output and n == 4
+    output, n = demo(2, 2)
+    assert "synthesising" not in output and n == 4  # same settings: reused
+    output, n = demo(3, 2)
+    assert "made with other settings: synthesising it again" in output and n == 6
     (out / "data" / "demo-dataset.json").unlink()  # data demo cannot vouch for: refused, not reused
-    r = CliRunner().invoke(main, ["demo", "--subjects", "3", "--scans", "1", "--methods", "icp", "--out", str(out)])
+    r = CliRunner().invoke(main, ["demo", "--subjects", "3", "--scans", "2", "--methods", "icp", "--out", str(out)])
     assert r.exit_code == 2 and "did not record making" in r.output and "remove it or choose another --out" in r.output
 
 

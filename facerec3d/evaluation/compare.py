@@ -15,7 +15,7 @@ from scipy.stats import binomtest
 
 from facerec3d.evaluation.plots import plot_cmc, plot_det, plot_roc
 from facerec3d.errors import InputError
-from facerec3d.evaluation.report import RATES, SET_COLUMNS, claim_run_folder, format_value, with_interval, write_pages
+from facerec3d.evaluation.report import RATES, SET_COLUMNS, format_value, run_folder, with_interval, write_pages
 from facerec3d.evaluation.scorefile import text_file
 
 ALPHA = 0.05  # significance level of the McNemar tests
@@ -171,8 +171,6 @@ def compare_runs(run_dirs: Sequence[str | Path], out_dir: str | Path, overwrite:
                        ["runs", "probes", "hit by first only", "hit by second only", "p", "verdict"],
                        [t.pop("row") for t in tests]))
 
-    out = claim_run_folder(out_dir, overwrite, files=COMPARE_FILES, what="a comparison")
-    out.mkdir(parents=True, exist_ok=True)
     plots = {}
 
     def curves_of(*keys: str) -> dict:
@@ -180,15 +178,16 @@ def compare_runs(run_dirs: Sequence[str | Path], out_dir: str | Path, overwrite:
         return {r["label"]: tuple(r["curves"][k] for k in keys) for r in runs
                 if all(k in r["curves"] and r["curves"][k].size for k in keys)}
 
-    plot_roc(curves_of("roc_fmr", "roc_tar"), out / "compare_roc.png")
-    plots["ROC"] = "compare_roc.png"
-    det = curves_of("det_fmr", "det_fnmr")
-    if det:
-        plot_det(det, out / "compare_det.png")
-        plots["DET"] = "compare_det.png"
-    plot_cmc({k: v[0] for k, v in curves_of("cmc").items()}, out / "compare_cmc.png")
-    plots["CMC"] = "compare_cmc.png"
-    write_pages(out, "compare", "facerec3d: comparison of runs", tables, plots)
-    files = [str(out / f) for f in (*plots.values(), "compare.html", "compare.md")]
+    with run_folder(out_dir, overwrite, files=COMPARE_FILES, what="a comparison") as work:
+        plot_roc(curves_of("roc_fmr", "roc_tar"), work / "compare_roc.png")
+        plots["ROC"] = "compare_roc.png"
+        det = curves_of("det_fmr", "det_fnmr")
+        if det:
+            plot_det(det, work / "compare_det.png")
+            plots["DET"] = "compare_det.png"
+        plot_cmc({k: v[0] for k, v in curves_of("cmc").items()}, work / "compare_cmc.png")
+        plots["CMC"] = "compare_cmc.png"
+        write_pages(work, "compare", "facerec3d: comparison of runs", tables, plots)
+    files = [str(Path(out_dir) / f) for f in (*plots.values(), "compare.html", "compare.md")]
     return {"columns": columns, "rows": rows, "tables": [t[:3] for t in tables], "mcnemar": tests,
             "runs": [{k: r[k] for k in ("label", "dir", "metrics")} for r in runs], "files": files}

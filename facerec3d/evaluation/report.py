@@ -18,7 +18,10 @@ import html
 import json
 import os
 import shlex
-from collections.abc import Mapping, Sequence
+import shutil
+import tempfile
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from urllib.parse import quote
 
@@ -55,6 +58,26 @@ def claim_run_folder(out_dir: str | Path, overwrite: bool = False, keep: Sequenc
         if path.resolve() not in kept:
             path.unlink()
     return out
+
+
+@contextmanager
+def run_folder(out_dir: str | Path, overwrite: bool = False, keep: Sequence[str | Path | None] = (),
+               files: Sequence[str] = RUN_FILES, what: str = "a run") -> Iterator[Path]:
+    """`claim_run_folder`, then a new folder to write the files into, hidden beside `out_dir`: when the block ends
+    they are moved into `out_dir` (the first of `files`, metrics.json for a run, last); when it raises (Ctrl-C too)
+    that folder is removed. An interrupted run leaves no part of itself in `out_dir` (it left metrics.json and
+    scores.txt without the report, looking like a run that a new one then refused to replace)."""
+    out = claim_run_folder(out_dir, overwrite, keep, files, what)
+    beside = out.resolve()
+    beside.parent.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f".{beside.name}.", suffix=".partial", dir=beside.parent))
+    try:
+        yield work
+        out.mkdir(parents=True, exist_ok=True)
+        for name in sorted(os.listdir(work), key=lambda name: name == files[0]):
+            os.replace(work / name, out / name)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
 
 
 # summarize() keys shown in reports, with their labels; RATES are shown in %.

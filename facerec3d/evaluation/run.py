@@ -28,7 +28,7 @@ from facerec3d.datasets.catalog import open_dataset
 from facerec3d.datasets.protocols import split
 from facerec3d.evaluation.metrics import BOOTSTRAP
 from facerec3d.evaluation.provenance import provenance
-from facerec3d.evaluation.report import claim_run_folder, write_run
+from facerec3d.evaluation.report import run_folder, write_run
 from facerec3d.gallery.cascade import Cascade, CascadeConfig, check_cascadable
 from facerec3d.gallery.engine import Engine
 from facerec3d.matching.registry import DEFAULT_METHOD, make_matcher, trained_matcher
@@ -61,34 +61,36 @@ def evaluate(data: str | Path, method: str = DEFAULT_METHOD, out: str | Path = "
     cached from computed preprocessing.
 
     A folder `out` that holds an earlier run is refused unless `overwrite` (the command line's --overwrite; here
-    the default), and then that run's files are removed first (`report.RUN_FILES`), so none is left over.
+    the default), and then that run's files are removed first (`report.RUN_FILES`), so none is left over. The new
+    run is written beside `out` and moved into it at the end (`report.run_folder`): an interrupted run leaves none
+    of its files there.
     `echo` (the command line's stderr) is told what a learnt method learnt from (`registry.trained_matcher`)."""
     dataset = open_dataset(data)
     sp = split(dataset, protocol)  # a dataset the protocol does not suit is refused before any work
-    claim_run_folder(out, overwrite, keep=[model])
-    if cascade is not None and model is None:  # refused before any training, not after
-        check_cascadable(make_matcher(method, options))
-    with Engine.create(jobs, scheduler, items=len(dataset.records)) as engine:  # no more processes than scans
-        matcher, training = trained_matcher(method, options, train=train, model=model, workers=engine, cache=cache,
-                                            config=config, progress=progress, echo=echo)
-        if cascade is not None:
-            check_cascadable(matcher)
-        return _evaluate(engine, matcher, training, dataset, sp, data, out, jobs=jobs, cache=cache,
-                         config=config, model=model, cascade=cascade, intrinsics=intrinsics, bootstrap=bootstrap,
-                         seed=seed, progress=progress)
+    with run_folder(out, overwrite, keep=[model]) as work:  # the run is written there, moved into `out` at the end
+        if cascade is not None and model is None:  # refused before any training, not after
+            check_cascadable(make_matcher(method, options))
+        with Engine.create(jobs, scheduler, items=len(dataset.records)) as engine:  # no more processes than scans
+            matcher, training = trained_matcher(method, options, train=train, model=model, workers=engine,
+                                                cache=cache, config=config, progress=progress, echo=echo)
+            if cascade is not None:
+                check_cascadable(matcher)
+            return _evaluate(engine, matcher, training, dataset, sp, data, out, work, jobs=jobs, cache=cache,
+                             config=config, model=model, cascade=cascade, intrinsics=intrinsics,
+                             bootstrap=bootstrap, seed=seed, progress=progress)
 
 
-def _evaluate(engine: Engine, matcher, training: dict, dataset, sp, data: str | Path, out: str | Path, *, jobs,
-              cache, config, model, cascade, intrinsics, bootstrap, seed, progress) -> dict:
-    """`evaluate` with its engine, (trained) matcher, dataset and split."""
+def _evaluate(engine: Engine, matcher, training: dict, dataset, sp, data: str | Path, out: str | Path, work: Path, *,
+              jobs, cache, config, model, cascade, intrinsics, bootstrap, seed, progress) -> dict:
+    """`evaluate` with its engine, (trained) matcher, dataset and split; the run folder `out` written in `work`
+    (run_folder), its files named where they will be, in `out`."""
     method = matcher.name
     recs = dataset.records
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
     if "fit_s" in training:
         timings["fit_s"] = training.pop("fit_s")
-        matcher.save(out / "model.npz")
+        matcher.save(work / "model.npz")
         model = out / "model.npz"
 
     t0 = time.perf_counter()
@@ -180,9 +182,9 @@ def _evaluate(engine: Engine, matcher, training: dict, dataset, sp, data: str | 
     quality = [{"path": str(recs[i].path), "role": "gallery" if i in sp.gallery else "probe", **scan_quality(faces[i])}
                for i in needed if i in faces]
     settings = {"preprocess": out / "preprocess.json", "method": out / "method.json"}
-    settings["preprocess"].write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
+    (work / settings["preprocess"].name).write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
     if model is None:
-        settings["method"].write_text(json.dumps(matcher.options(), indent=2) + "\n", encoding="utf-8")
+        (work / settings["method"].name).write_text(json.dumps(matcher.options(), indent=2) + "\n", encoding="utf-8")
     rerun = ["facerec3d", "evaluate", Path(data).resolve(), "--out", out.resolve(),
              *(["--model", Path(model).resolve()] if model is not None else
                ["--method", method, "--method-config", settings["method"].resolve()]),
@@ -199,7 +201,7 @@ def _evaluate(engine: Engine, matcher, training: dict, dataset, sp, data: str | 
             "quality_median": {k: float(np.median([q[k] for q in quality if k in q]))
                                for k in QUALITY_FIELDS if any(k in q for q in quality)},
             "scan_quality": quality}
-    return write_run(out, S, [recs[i].subject for i in probes], [dataset.label(recs[i]) for i in probes],
+    return write_run(work, S, [recs[i].subject for i in probes], [dataset.label(recs[i]) for i in probes],
                      [recs[i].subject for i in enrolled], info, tiebreak=tiebreak, subsets=masks,
                      subset_failures=subset_failures, failed=[(dataset.label(recs[i]), recs[i].subject) for i in failed_probes],
                      masks=pair_masks, bootstrap=bootstrap, seed=seed,

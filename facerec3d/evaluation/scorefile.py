@@ -239,7 +239,7 @@ def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str =
     are matched by label, templates by (subject, label). Returns the fused matrix and the number of comparisons left out because some file lacks them
     (a comparison is fused only where every file has it; a score of −inf, a match not found, counts as that
     probe's worst). Raises InputError naming the file when the files disagree on a probe's subject, and the fusion
-    method's errors for its settings (SettingsError naming `weights` or `top` out of range, InputError otherwise;
+    method's errors for its settings (SettingsError naming `weights` or `top` out of range, InputError otherwise:
     weights with a rule that ignores them too)."""
     from facerec3d.matching.fusion import FusionConfig
     from facerec3d.matching.normalisation import fuse
@@ -253,8 +253,6 @@ def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str =
         raise
     except ValueError as e:
         raise InputError(str(e)) from None
-    if weights and rule != "weighted-sum":
-        raise InputError(f"weights are for the weighted-sum rule: {rule} does not use them")
     mats = [read_score_matrix(p, fmt) for p in paths]
     first = mats[0]
     probes = {str(label): i for i, label in enumerate(first.probe_labels)}

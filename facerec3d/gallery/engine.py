@@ -18,6 +18,7 @@ joined in gallery order, so the results are the same whatever the number or kind
 from __future__ import annotations
 
 import uuid
+from concurrent.futures import BrokenExecutor
 from collections.abc import Callable, Hashable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -164,9 +165,19 @@ class ShardedGallery:
         return len(self.keys)
 
     def release(self) -> None:
-        """Drop the shards from the workers."""
-        for f in [ex.submit(_drop, key) for ex, key in zip(self.engine.executors, self.keys)]:
-            f.result()
+        """Drop the shards from the workers. A worker that died (Ctrl-C ends them with the run) took its shard
+        with it: nothing to drop there (closing the engine of an interrupted run raised BrokenProcessPool)."""
+        futures = []
+        for ex, key in zip(self.engine.executors, self.keys):
+            try:
+                futures.append(ex.submit(_drop, key))
+            except BrokenExecutor:
+                pass
+        for f in futures:
+            try:
+                f.result()
+            except BrokenExecutor:
+                pass
         if self in self.engine._loaded:
             self.engine._loaded.remove(self)
 

@@ -115,6 +115,8 @@ def check_fusion(rule: str, normalisation: str, weights: Sequence[float], n_sour
         raise ValueError(f"unknown normalisation {normalisation!r}: use one of {NORMALISATIONS}")
     if rule == "product" and normalisation not in ("min-max", "tanh", "tanh-hampel"):
         raise ValueError("the product rule needs a non-negative normalisation: min-max, tanh or tanh-hampel")
+    if len(weights) and rule != "weighted-sum":  # given for nothing: silently ignored (a fusion's method config)
+        raise ValueError(f"weights are for the weighted-sum rule: {rule} does not use them")
     if rule == "weighted-sum" and len(weights) != n_sources:
         raise ValueError(f"weighted-sum needs one weight per source: {n_sources} sources, {len(weights)} weights")
     if rule == "weighted-sum" and not any(weights):  # every fused score 0: no ranking at all
