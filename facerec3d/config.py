@@ -23,6 +23,7 @@ POSITIVE = (0.0, math.inf, False)  # (low, high, low allowed): > 0
 NON_NEGATIVE = (0.0, math.inf, True)  # >= 0
 FRACTION = (0.0, 1.0, True)  # in [0, 1]
 ANY = (-math.inf, math.inf, True)
+MAX_GRID_SIDE = 2000  # cells a side of the largest range image facerec3d reads (io.common.MAX_POINTS is its square)
 MAX_INT = 2**31 - 1  # counts, seeds and sizes: larger ones are mistakes (and overflow NumPy's integers)
 
 #: Range of each numeric field, by name (the same name means the same kind of quantity in every config);
@@ -194,15 +195,13 @@ def check_ranges(config, prefix: str = "") -> None:
 
 def check_cells(field: str, cell_mm: float, span_mm: float, span: str) -> None:
     """Refuse the setting `field`, a cell size of `cell_mm` that lays `span` (words, `span_mm` long) on a square
-    grid wider than the largest scan facerec3d reads (io.common.MAX_POINTS, 2000 × 2000 cells): SettingsError naming
+    grid wider than the largest scan facerec3d reads (MAX_GRID_SIDE² = io.common.MAX_POINTS): SettingsError naming
     `field`, when the settings are checked, before any work. The bound is far above any real use (the default
     resampling grid is 191 × 191 cells; at 0.1 mm, finer than any face scanner samples, 1901 × 1901) and keeps a
     scan's grid and the arrays made from it under a few hundred MB; a finer grid made every scan fail (a MemoryError,
     NumPy's "array is too big"), and a face on it could not be read back from the cache. A cell <= 0 or NaN is left
     to its range check (`check_ranges`)."""
-    from facerec3d.io.common import MAX_POINTS
-
-    side = math.isqrt(MAX_POINTS)
+    side = MAX_GRID_SIDE
     across = span_mm / cell_mm + 1 if cell_mm > 0 else 0.0  # cells along a side
     if across > side:
         raise SettingsError(None, field, f"{cell_mm:g} mm cells lay {span} = {span_mm:g} mm, on {across:.6g} cells "

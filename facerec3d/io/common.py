@@ -8,6 +8,7 @@ from typing import Any, BinaryIO, Iterator
 
 import numpy as np
 
+from facerec3d.config import MAX_GRID_SIDE
 from facerec3d.errors import ScanFormatError
 from facerec3d.scan import FaceScan
 
@@ -24,7 +25,7 @@ def scan_stem(path: str | Path) -> str:
     return name[: len(name) - len(scan_suffix(path))]
 
 
-MAX_POINTS = 4_000_000  # refuse files announcing more points or pixels than this: a 2000×2000 range image, more
+MAX_POINTS = MAX_GRID_SIDE**2  # 4,000,000: refuse files announcing more points or pixels than this: a 2000×2000 range image, more
 #                          than face scanners and depth cameras deliver, keeps every command under 1 GB of memory
 MAX_MESH_BYTES = 64 << 20  # OFF and STL files are parsed whole by trimesh, at ~9× their size (a 55 MB OBJ of
 #                            700,000 vertices and 1.4 million triangles peaked at 575 MB when trimesh read OBJ too;
