@@ -207,3 +207,20 @@ def test_a_method_config_with_weights_its_rule_ignores_is_refused(tmp_path, weig
     with pytest.raises(SettingsError) as e:
         make_matcher("fusion", read_settings(path))
     assert str(e.value) == f"{path}: weights are for the weighted-sum rule: sum does not use them"
+
+
+def test_a_gallery_stored_with_weights_its_rule_ignored_loads_as_it_scored():
+    """Until 2026-12-06 a fusion (and region ICP) with weights and the sum rule was taken, the weights unused, and a
+    gallery stored it so; refusing such a method config must not lock that gallery out: its stored options load,
+    without the unused weights, in the member options too, and score as the weights never counted."""
+    from facerec3d.matching.fusion import FusionMatcher
+
+    stored = FusionMatcher().options()
+    stored["weights"] = [1.0, 2.0]
+    stored["member_options"] = {"region-icp": {"rule": "sum", "weights": [0.0, 0.0, 0.0]}}
+    matcher = FusionMatcher.from_stored(stored)
+    assert matcher.config.weights == () and matcher.config.rule == "sum"
+    region = next(m for m in matcher.members if m.name == "region-icp")
+    assert region.config.weights == () and region.config.rule == "sum"
+    weighted = dict(stored, rule="weighted-sum", weights=[1.0, 2.0, 0.5], member_options={})
+    assert FusionMatcher.from_stored(weighted).config.weights == (1.0, 2.0, 0.5)  # used weights are kept

@@ -132,6 +132,17 @@ def check_probe(matcher: "Matcher", probe: Any) -> Any:
     return probe
 
 
+def unused_weights_dropped(options: Any) -> Any:
+    """Stored options with the `weights` of a fusion or region ICP whose `rule` ignores them left out, in nested
+    tables too (a fusion's member options): such settings were taken, and the weights unused, until 2026-12-06,
+    when a method config holding them began to be refused (`normalisation.check_fusion`); a gallery stored with
+    them loads and scores as it did."""
+    if not isinstance(options, Mapping):
+        return options
+    return {k: unused_weights_dropped(v) for k, v in options.items()
+            if not (k == "weights" and "rule" in options and options["rule"] != "weighted-sum")}
+
+
 def check_templates(matcher: "Matcher", templates: Any) -> None:
     """InputError unless `templates` are gallery templates (`enroll` makes them): a scan given as the template
     reached each matcher's arrays as an AttributeError. Only a sequence is looked at (an iterator is left unread)."""
@@ -274,7 +285,7 @@ class Matcher(ABC, Generic[P]):
     def from_stored(cls, options: Mapping[str, Any] | None) -> "Matcher":
         """The matcher of options stored with templates (a gallery, a model file): fields missing from them that
         were added later (`added_options`) keep the behaviour of their time."""
-        return cls.from_options(with_added(cls.added_options, options or {}))
+        return cls.from_options(unused_weights_dropped(with_added(cls.added_options, options or {})))
 
     @classmethod
     def from_options(cls, options: Mapping[str, Any] | None = None) -> "Matcher":
