@@ -197,6 +197,8 @@ def _capped_jobs(ctx, param, value: int | None) -> int | None:
     the cores (--jobs 100000 opened a process pool each and ran out of open files)."""
     from facerec3d.workers import JOBS_PER_CORE, useful_jobs
 
+    if ctx.params.get("scheduler"):  # a Dask cluster's workers do the work (--scheduler is read first: eager)
+        return value
     if value is not None and (limit := useful_jobs(value)) < value:
         click.echo(f"warning: --jobs {value}: using {limit} processes ({JOBS_PER_CORE} per core; more would only wait "
                    "for a core)", err=True)
@@ -389,7 +391,8 @@ _CACHE_OPTION = click.option("--cache", type=click.Path(file_okay=False),
 
 def _engine_options(fn):
     """--jobs and --scheduler, shared by the commands that match."""
-    fn = click.option("--scheduler", help="Dask scheduler address (e.g. tcp://host:8786): shard the gallery over "
+    fn = click.option("--scheduler", is_eager=True,  # before --jobs, whose local cap it lifts (`_capped_jobs`)
+                      help="Dask scheduler address (e.g. tcp://host:8786): shard the gallery over "
                       "its workers instead of local processes (pip install 'facerec3d[distributed]').")(fn)
     return click.option("--jobs", default=os.cpu_count() or 1, show_default="all cores", type=click.IntRange(min=1),
                         callback=_capped_jobs,
