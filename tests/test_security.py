@@ -167,6 +167,29 @@ def test_deleting_the_key_file_revokes_every_key_and_is_logged(tmp_path, caplog)
     assert kf.authenticate(alice) is None
 
 
+
+def test_an_api_key_file_others_may_write_is_used_with_one_logged_warning(tmp_path, caplog):
+    """The API key file holds hashes only (no secret to read), but whoever can write it can add a key: a file
+    group or others may write was used without a word. One warning per change of the file now; a file only its
+    owner writes (0644, 0600) gets none."""
+    import logging
+    import os
+
+    from facerec3d.server.keys import KeyFile, add_key
+
+    keys = tmp_path / "keys.json"
+    alice = add_key(keys, "alice", "query")
+    caplog.set_level(logging.WARNING, logger="facerec3d.server")
+    for mode in (0o600, 0o644):
+        os.chmod(keys, mode)
+        assert KeyFile(keys).authenticate(alice).name == "alice"
+    assert "can be written by group or others" not in caplog.text
+    os.chmod(keys, 0o666)
+    kf = KeyFile(keys)
+    assert kf.authenticate(alice).name == "alice" and kf.authenticate(alice).name == "alice"  # used: a warning
+    assert caplog.text.count(f"key file {keys} can be written by group or others (mode 0666): anyone who can write "
+                             f"it can add a key; chmod 600 {keys}") == 1
+
 # ---------------------------------------------------------------- 7. a read-only gallery is refused at start
 def small_gallery(path: Path, key=None):
     from facerec3d.gallery.store import GalleryStore

@@ -162,6 +162,9 @@ class KeyFile:
             if self._stamp is not None:
                 log.warning("facerec3d service: key file %s changed: %d keys (%s)", self.path, len(keys),
                             ", ".join(sorted(k.name for k in keys.values()))[:500])
+            if os.name == "posix" and st.st_mode & 0o022:  # hashes are no secret, but whoever can write adds keys
+                log.warning("facerec3d service: key file %s can be written by group or others (mode %04o): anyone "
+                            "who can write it can add a key; chmod 600 %s", self.path, st.st_mode & 0o7777, self.path)
             self._keys, self._stamp, self.unreadable = keys, stamp, None
 
     def _reload(self) -> None:
