@@ -74,6 +74,11 @@ class _Main(click.Group):
                 raise
             click.echo("interrupted", err=True)
             raise click.exceptions.Exit(EXIT_INTERRUPTED) from None
+        except MemoryError as e:  # the machine's memory ran out (a plot's C++ bad_alloc under a memory limit): one
+            #                       line, as any error, not a traceback
+            click.echo(f"error: out of memory{f' ({e})' if str(e) else ''}: free memory, or give the command less "
+                       "at once (fewer --jobs, a smaller gallery or dataset)", err=True)
+            raise click.exceptions.Exit(1) from None
         except BrokenPipeError:
             try:  # nothing more reaches the reader; send what is still buffered nowhere, quietly
                 os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

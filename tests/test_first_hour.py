@@ -324,6 +324,24 @@ def test_an_interrupted_run_leaves_no_part_of_itself(run, frames, tmp_path, monk
     assert {"metrics.json", "scores.txt", "report.html", "det.png", "method.json"} <= set(os.listdir(folder))
 
 
+def test_memory_running_out_is_one_line_and_leaves_no_part_of_a_run(run, tmp_path, monkeypatch):
+    """Under a memory limit, matplotlib's C++ bad_alloc while a run's plots were drawn was a MemoryError traceback:
+    one line now (exit 1), and the run, written beside its folder, leaves nothing."""
+    import facerec3d.evaluation.report
+
+    out, _ = run
+
+    def no_memory(*args, **kwargs):
+        raise MemoryError("std::bad_alloc")
+
+    monkeypatch.setattr(facerec3d.evaluation.report, "plot_det", no_memory)
+    folder = tmp_path / "runs" / "m"
+    r = CliRunner().invoke(main, ["metrics", str(out / "scores.txt"), "--out", str(folder), "--bootstrap", "0"])
+    assert r.exit_code == 1 and r.output == ("error: out of memory (std::bad_alloc): free memory, or give the command "
+                                             "less at once (fewer --jobs, a smaller gallery or dataset)\n"), r.output
+    assert list((tmp_path / "runs").iterdir()) == []
+
+
 def test_info_lays_out_errors_as_every_command_does(tmp_path, frames):
     """Item 8: `error: FILE: reason`; and an RGBA or empty PNG is "not a depth image" before any intrinsics."""
     from PIL import Image
