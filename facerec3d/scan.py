@@ -172,7 +172,7 @@ class FaceScan:
             return float("nan")
         sample = np.arange(n) if n <= 20000 else np.random.default_rng(0).choice(n, 20000, replace=False)
         if self.grid is not None and self.grid_shape is not None:
-            d2 = _nearest_neighbour_pixel_d2(self.points, self.grid, np.sort(sample))  # in memory order: the same set
+            d2 = _nearest_neighbour_pixel_d2(self.points, self.grid, _in_order(sample, n))  # the same set
             if np.isfinite(d2).any():
                 return float(np.sqrt(np.median(d2[np.isfinite(d2)])))
         from scipy.spatial import cKDTree
@@ -259,6 +259,16 @@ class FaceScan:
         who = self.meta.scan_id or self.meta.path or "scan"
         grid = f", grid {self.grid_shape[0]}x{self.grid_shape[1]}" if self.grid is not None else ""
         return f"FaceScan({who}: {self.n_points} points{grid}, {len(self.landmarks)} landmarks)"
+
+
+def _in_order(sample: np.ndarray, n: int) -> np.ndarray:
+    """The distinct indices `sample` (of 0..n-1) in increasing order, as np.sort gives them, in O(n): the points in
+    memory order (sorting 20,000 indices took longer than measuring their distances)."""
+    if len(sample) == n:  # np.arange(n)
+        return sample
+    chosen = np.zeros(n, dtype=bool)
+    chosen[sample] = True
+    return np.flatnonzero(chosen)
 
 
 @njit(cache=True)
