@@ -507,8 +507,11 @@ def _enroll_remote(server, api_key, records, jobs, preprocess_locally=False, int
 
     chosen = {id(r) for r in calibration_selection(records)}  # the scans a calibration would score
     sent = {}  # with preprocess_locally, the faces sent for them: calibrated on as the very bytes enrolled
+    lost = []  # the reason the service could not be reached, once it could not: the scans after it are not sent
 
     def one(record):
+        if lost:
+            return None
         try:
             scan = record.path
             if preprocess_locally:
@@ -520,6 +523,9 @@ def _enroll_remote(server, api_key, records, jobs, preprocess_locally=False, int
         except ServiceError as e:
             if e.status == 409:
                 return "skipped"
+            if e.status == 0:  # the service gone (stopped, the network down, no answer in time): this scan's
+                lost.append(e.reason)  # outcome is unknown, and every later scan would fail alike: not sent
+                return f"{e.reason} (whether the service enrolled it is unknown: enrol it again to know)"
             if e.status in (413, 415, 422):
                 return e.reason.removeprefix("failure to enrol: ").removeprefix(f"{Path(record.path).name}: ")
             if e.status >= 500:  # this scan's: the service answers the next (a refused key or a lost service stops)
@@ -537,13 +543,19 @@ def _enroll_remote(server, api_key, records, jobs, preprocess_locally=False, int
             client.preprocessor()  # the service's settings, or stop here when this facerec3d cannot reproduce them
         for record, status in zip(records, pool.map(one, records)):
             bar.update()
-            if status in counts:
+            if status is None:
+                counts["not sent"] = counts.get("not sent", 0) + 1
+            elif status in counts:
                 counts[status] += 1
                 if id(record) in chosen:
                     held.append(record)
             else:
                 counts["failed"] += 1
                 tqdm.write(f"{record.path}: failed to enrol: {status}")
+    if lost:  # what was committed stays; say how far it got, and fail: the enrolment is not complete
+        click.echo(f"{counts['enrolled']} enrolled, {counts['skipped']} already enrolled, {counts['failed']} failed to "
+                   f"enrol, {counts.get('not sent', 0)} not sent: the service stopped answering ({lost[0]})", err=True)
+        sys.exit(1)
     with _client(server, api_key) as client:
         st = client.stats()
         if calibrate and counts["enrolled"]:

@@ -709,6 +709,36 @@ def test_a_service_error_on_one_scan_is_its_failure_and_the_enrolment_goes_on(se
     assert run.invoke(main, ["gallery", "--server", url, "remove", "s31"]).exit_code == 0
 
 
+def test_a_service_lost_mid_enrolment_says_how_far_it_got_and_fails(setup, monkeypatch):
+    """The service gone mid-batch (`cannot reach the service`) stopped `enroll --server` with that one line and no
+    word of the scans enrolled before it: now the scan it happened on is a failure whose outcome is unknown, the
+    later ones are not sent, the summary says so and the command exits 1."""
+    from facerec3d.client import Client, ServiceError
+
+    tmp, url = setup["tmp"], setup["url"]
+    scans = [probe_file(tmp, 32, k) for k in (1, 2, 3)]
+    real, tried = Client.enrol, []
+
+    def gone(self, scan, *args, **kwargs):
+        tried.append(Path(scan).name)
+        if not str(scan).endswith(scans[0].name):
+            raise ServiceError(0, f"cannot reach the service at {url}: [Errno 111] Connection refused")
+        return real(self, scan, *args, **kwargs)
+
+    monkeypatch.setattr(Client, "enrol", gone)
+    run = CliRunner(env={"FACEREC3D_API_KEY": setup["key"]["alice"]})
+    r = run.invoke(main, ["enroll", *map(str, scans), "--server", url, "--subject", "s32", "--no-calibrate",
+                          "--jobs", "1"])
+    assert r.exit_code == 1, r.output
+    assert tried == [scans[0].name, scans[1].name]  # nothing sent after the service was lost
+    assert f"{scans[1]}: failed to enrol: cannot reach the service" in r.output
+    assert "whether the service enrolled it is unknown" in r.output
+    assert ("1 enrolled, 0 already enrolled, 1 failed to enrol, 1 not sent: the service stopped answering "
+            "(cannot reach the service") in r.output
+    monkeypatch.setattr(Client, "enrol", real)
+    assert run.invoke(main, ["gallery", "--server", url, "remove", "s32"]).exit_code == 0
+
+
 def mocked(handler) -> Client:
     """A client whose requests `handler` answers (httpx.MockTransport): no service needed."""
     client = Client("http://service.test", api_key="fr3d_test")
