@@ -254,3 +254,46 @@ def test_enrolling_through_the_service_calibrates_its_gallery_as_a_local_calibra
         # the same to the bit across processes and batch sizes); any other face would move it by far more
         assert local["value"] == pytest.approx(theirs["value"], rel=1e-7, abs=0)
         assert local["genuine_pairs"] == 9 * 2  # each scan's own entry left out (by its bytes: no file behind it)
+
+
+def test_a_gallery_normalised_method_calibrates_its_impostor_pairs_as_strangers_claims(kinect, tmp_path):
+    """Hunt 4, bug 1: a fusion gallery of 3 scans per person calibrated on its own scans at FMR 1 % let 44 % of
+    strangers' claims through. Each calibration scan's impostor scores were normalised over a cohort holding its
+    own subject's other entries, whose high scores lower every other z-score; a stranger's cohort holds none.
+    Now an impostor pair is scored as a stranger's claim is (the gallery without the claimant's entries) and a
+    genuine one as a new scan of an enrolled person is (the gallery without its own entry), checked against
+    `scores` of exactly those galleries, and strangers' claims pass at about the stated rate."""
+    from facerec3d.preprocess.batch import preprocess_file
+
+    matcher = make_matcher("fusion", {"members": ["icp"]})  # z-scored over the gallery: a cohort method, and quick
+    path, cache = tmp_path / "g.sqlite", tmp_path / "cache"  # (each scan preprocessed once)
+    with GalleryStore(path, create=True) as store, Engine.create(1) as engine:
+        report = enroll_scans(store, scan_records([kinect]), matcher, engine=engine, cache=cache)
+        assert report.enrolled == 15 and not report.failures
+        records = gallery_records(store)
+        genuine, impostor, failed = calibration_scores(store, records, engine=engine, cache=cache)
+        entries, matcher, config = store.entries(), store.matcher(), store.preprocess_config()
+        templates = store.templates(entries)
+    assert failed == 0 and len(genuine) == 15 * 2 and len(impostor) == 15 * 12
+    want_genuine, want_impostor = [], []
+    for r in records:  # the reference: the scan scored against exactly the gallery its claim meets
+        probe = matcher.prepare(preprocess_file(r.path, config, cache).face)
+        mine = [e.subject == r.subject for e in entries]
+        own = [e.source == str(r.path) for e in entries]
+        without_own = [t for t, o in zip(templates, own) if not o]
+        s = matcher.scores(probe, without_own)[0]
+        want_genuine += [x for x, m, o in zip(s, [m for m, o in zip(mine, own) if not o], own) if m]
+        want_impostor += list(matcher.scores(probe, [t for t, m in zip(templates, mine) if not m])[0])
+    np.testing.assert_allclose(np.sort(genuine), np.sort(want_genuine), rtol=1e-12)
+    np.testing.assert_allclose(np.sort(impostor), np.sort(want_impostor), rtol=1e-12)
+
+    strangers = tmp_path / "strangers"  # people the gallery does not hold, each claiming every enrolled person
+    write_dataset(strangers, DatasetConfig(subjects=3, scans=2, scanner=sensor_profile("kinect-v2-8bit"), seed=9,
+                                           first_subject=500))
+    claims, accepted, threshold = 0, 0, threshold_at_fmr(impostor, 0.01)  # what `calibrate` records
+    with GalleryStore(path) as store:
+        for r in scan_records([strangers]):
+            for claim in sorted({e.subject for e in entries}):
+                claims += 1
+                accepted += verify_scan(store, r.path, claim=claim, threshold=threshold, cache=cache)[0]
+    assert claims == 30 and accepted <= 3, f"{accepted} of {claims} strangers' claims accepted at {threshold:.3f}"

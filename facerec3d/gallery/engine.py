@@ -231,24 +231,18 @@ class ShardedGallery:
     def scores(self, probes: Sequence[Probe]) -> list[GalleryScores]:
         """(scores (n,), tiebreak (n,)) of each probe against the whole gallery (exhaustive): the shards'
         scores joined, then merged as one gallery (matching.base.merge_shard_scores)."""
-        rows = self.per_shard([[(_shard_scores, p.prepared)] * self.shards for p in probes])
         out = []
-        for row in rows:
-            scores, tiebreak = merge_shard_scores(self.matcher, np.concatenate(row, axis=-1))
+        for rows in self.shard_rows(probes):
+            scores, tiebreak = merge_shard_scores(self.matcher, rows)
             out.append(GalleryScores(scores, np.zeros_like(scores) if tiebreak is None else tiebreak))
         return out
 
-    def scores_without(self, probe: Probe, left_out: Sequence[int]) -> np.ndarray:
-        """A prepared probe's scores against the gallery without the entries at gallery indices `left_out` (NaN
-        there), normalised over the others alone by a method that normalises over the gallery: as if those were
-        not enrolled (calibration leaves a scan's own entry out, evaluation.calibrate)."""
-        rows = np.concatenate(self.per_shard([[(_shard_scores, probe.prepared)] * self.shards])[0], axis=-1)
-        keep = np.ones(rows.shape[-1], dtype=bool)
-        keep[np.asarray(left_out, dtype=np.int64)] = False
-        scores = np.full(rows.shape[-1], np.nan)
-        if keep.any():
-            scores[keep] = merge_shard_scores(self.matcher, rows[:, keep])[0]
-        return scores
+    def shard_rows(self, probes: Sequence[Probe]) -> list[np.ndarray]:
+        """Each prepared probe's `matching.base.shard_scores` against the whole gallery, the shards' joined: what
+        `merge_shard_scores` makes its scores of, over all the entries or over any subset of them (its columns:
+        a method that normalises over the gallery then normalises over that subset alone)."""
+        return [np.concatenate(row, axis=-1)
+                for row in self.per_shard([[(_shard_scores, p.prepared)] * self.shards for p in probes])]
 
     def scores_at_many(self, probes: Sequence[Probe], indices: Sequence[Sequence[int]]) -> list[GalleryScores]:
         """(scores, tiebreak) of each prepared probe against the entries at its gallery indices, in increasing

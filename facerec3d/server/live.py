@@ -42,6 +42,7 @@ import numpy as np
 
 from facerec3d.config import DEFAULT_METHOD
 from facerec3d.errors import FaceRec3DError
+from facerec3d.evaluation.calibrate import pair_scores
 from facerec3d.gallery.cascade import CascadeConfig, check_cascadable
 from facerec3d.gallery.engine import Engine, Probe, ShardedGallery
 from facerec3d.gallery.service import gallery_threshold
@@ -302,8 +303,8 @@ class LiveGallery:
                            check: Callable[[], None] = lambda: None) -> tuple[np.ndarray, np.ndarray, int]:
         """(genuine scores, impostor scores, gallery size) of calibration probes, each with its subject and the
         SHA-256 of its upload, against the current version, each without its own entry (the one enrolled from the
-        same bytes), as `evaluation.calibrate` scores a gallery's scans. One probe at a time (`check()` between
-        them, e.g. the request's time limit): queries are served in between."""
+        same bytes), each pair as `evaluation.calibrate.pair_scores` scores it (as a gallery's scans are scored).
+        One probe at a time (`check()` between them, e.g. the request's time limit): queries are served in between."""
         with self.snapshot() as snap:
             if not snap.entries:
                 raise GalleryError("the gallery is empty")
@@ -314,10 +315,10 @@ class LiveGallery:
             impostor: list[float] = []
             for probe, subject, content in zip(probes, subjects, contents):
                 check()
-                other = hashes != content
-                scores = snap.gallery.scores_without(probe, np.flatnonzero(~other))
-                genuine += scores[other & (owners == str(subject))].tolist()
-                impostor += scores[other & (owners != str(subject))].tolist()
+                rows = snap.gallery.shard_rows([probe])[0]
+                g, i = pair_scores(self.matcher, rows, hashes == content, owners == str(subject))
+                genuine += g.tolist()
+                impostor += i.tolist()
             return np.array(genuine), np.array(impostor), len(snap.entries)
 
     def verify(self, probe: Probe, claim: str) -> tuple[float, int]:
