@@ -784,6 +784,7 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
             matcher, _ = trained_matcher(method or DEFAULT_METHOD, options, train=train, model=model, workers=engine,
                                          cache=cache, config=config, echo=_to_stderr)
         with GalleryStore(gallery, create=True) as store:
+            store.check_writable()  # before the progress bar: a read-only store, or one a service holds, in one line
             _note_new_method(store, matcher)
             with tqdm(total=len(records), unit="scan", desc="enrolling") as bar:
                 def show(source, status):

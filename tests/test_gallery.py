@@ -360,3 +360,25 @@ def test_enroll_scans_takes_paths_and_verify_scan_refuses_a_threshold_that_is_no
                 verify_scan(store, probe, probe_subject, threshold=bad)
         accepted, score, threshold = verify_scan(store, probe, probe_subject, threshold=np.float32(-1e6))
         assert accepted and np.isfinite(score) and threshold == -1e6 and type(threshold) is float
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="a service's worker processes are forked on Unix only")
+def test_processes_forked_from_a_service_do_not_keep_its_store_held(tmp_path):
+    """A service holds its store with a `flock`, which lives while any process has the lock file open: its worker
+    processes, forked from it, close their copy, so that one outliving a killed service keeps nothing held."""
+    import multiprocessing
+
+    from facerec3d.gallery.store import ServeLock, served_by
+
+    gallery = tmp_path / "g.sqlite"
+    hold = ServeLock(gallery, "http://127.0.0.1:8000")
+    worker = multiprocessing.get_context("fork").Process(target=time.sleep, args=(60,))
+    worker.start()
+    try:
+        with GalleryStore(gallery, create=True) as store:  # the service's own process writes
+            store.bind(PreprocessConfig(), ICPMatcher())
+        hold.release()  # (as the service's end does)
+        assert worker.is_alive() and served_by(gallery) is None
+    finally:
+        worker.kill()
+        worker.join()

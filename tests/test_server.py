@@ -589,6 +589,76 @@ def test_kill_9_mid_enrolment_loses_no_acknowledged_entry(tmp_path):
         server.stop()
 
 
+def held_message(server: "Server") -> str:
+    """The one line a local write to a served store is refused with."""
+    return (f"error: {server.gallery}: a gallery service (pid {server.proc.pid}, {server.url}) holds this gallery: "
+            f"change it through the service (--server {server.url}), or stop the service first\n")
+
+
+def test_a_served_gallery_refuses_local_writes_and_a_second_service(tmp_path):
+    """While a service serves a store, local commands that write to it (enroll, gallery remove, calibrate) are
+    refused with one line naming the service's URL, the store unchanged (the service would go on answering from
+    its memory: a subject removed locally still identified); reads go on; a second service on it is refused. Once
+    the service has stopped, local writes work again."""
+    gallery, keys = tmp_path / "g.sqlite", tmp_path / "keys.json"
+    make_gallery(gallery)
+    add_key(keys, "alice", "enrol,query,admin")
+    server = Server(gallery, keys, "--jobs", "1")
+    try:
+        run = CliRunner()
+        for args in (["gallery", str(gallery), "remove", "s1"],
+                     ["enroll", str(probe_file(tmp_path, 9, 1)), "--gallery", str(gallery), "--subject", "s9",
+                      "--jobs", "1", "--no-calibrate"],
+                     ["gallery", str(gallery), "calibrate", "--jobs", "1"]):
+            r = run.invoke(main, args)
+            assert r.exit_code == 2 and r.output == held_message(server), (args, r.output)
+        r = run.invoke(main, ["gallery", str(gallery), "list"])  # reading goes on
+        assert r.exit_code == 0 and [line.split("\t")[1] for line in r.output.splitlines()] == \
+            [f"s{s}" for s in range(SUBJECTS)], r.output
+        with GalleryStore(gallery) as store:
+            assert [e.subject for e in store.entries()] == [f"s{s}" for s in range(SUBJECTS)]
+            assert store.threshold() is None
+        # a second service on the same store
+        r = subprocess.run([sys.executable, "-m", "facerec3d.cli", "serve", "--gallery", str(gallery), "--keys",
+                            str(keys), "--jobs", "1", "--port", "0"], capture_output=True, text=True, timeout=300)
+        assert r.returncode == 2 and r.stderr == (
+            f"error: {gallery}: a gallery service (pid {server.proc.pid}, {server.url}) serves this gallery already: "
+            f"use it (--server {server.url}) or stop it first\n"), r.stderr
+        with Client(server.url, add_key(keys, "bob", "query")) as c:
+            assert c.identify(probe_file(tmp_path, 1, 2), k=1)["candidates"][0]["subject"] == "s1"
+    finally:
+        server.stop()  # SIGTERM
+    r = CliRunner().invoke(main, ["gallery", str(gallery), "remove", "s1"])
+    assert r.exit_code == 0 and r.output == "removed 1 entry\n", r.output
+
+
+def test_local_writes_go_on_once_the_service_is_killed(tmp_path):
+    """The service's hold on its store is a lock the kernel lets go when it dies: after SIGKILL (its worker
+    processes, forked from it, hold nothing) local writes work again, and so does a new service."""
+    gallery, keys = tmp_path / "g.sqlite", tmp_path / "keys.json"
+    make_gallery(gallery)
+    key = add_key(keys, "alice", "enrol,query,admin")
+    server = Server(gallery, keys, "--jobs", "2")
+    try:
+        r = CliRunner().invoke(main, ["gallery", str(gallery), "remove", "s1"])
+        assert r.exit_code == 2 and r.output == held_message(server), r.output
+        server.kill9()
+    finally:
+        if server.proc.poll() is None:
+            server.kill9()
+    assert Path(str(gallery) + ".serve.lock").exists()  # left behind, and blocking nothing
+    r = CliRunner().invoke(main, ["gallery", str(gallery), "remove", "s1"])
+    assert r.exit_code == 0 and r.output == "removed 1 entry\n", r.output
+    server.start()
+    try:
+        with Client(server.url, key) as c:
+            assert c.stats()["entries"] == SUBJECTS - 1
+        r = CliRunner().invoke(main, ["gallery", str(gallery), "remove", "s2"])
+        assert r.exit_code == 2 and r.output == held_message(server), r.output
+    finally:
+        server.stop()
+
+
 # ------------------------------------------------------------------------------- in-process pieces
 def test_gallery_update_keeps_snapshots_consistent():
     """ShardedGallery.update: the old version stays whole for probes using it; the new one scores as a

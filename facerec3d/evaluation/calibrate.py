@@ -129,6 +129,7 @@ def calibrate(store: GalleryStore, records: Sequence[ScanRecord] | None = None, 
     it in the store: the threshold at false-match rate `fmr`, or at the equal error rate when `fmr` is None.
     Depth frames are read with `intrinsics` when given (as they were enrolled).
     Returns the record: value, rule, pair counts, the EER and the TAR at the threshold where genuine pairs exist."""
+    store.check_writable()  # before the work: a store that cannot be written, or that a service holds, is refused
     own = records is None
     records = gallery_records(store) if own else list(records)
     genuine, impostor, failed = calibration_scores(store, records, engine=engine, cache=cache, max_scans=max_scans,

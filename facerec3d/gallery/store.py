@@ -27,6 +27,11 @@ Each enrolment (an entry and its arrays) is one transaction, so a crash or kill 
 earlier enrolment intact and the file readable (SQLite rolls the unfinished one back on the next open).
 A new store file (and SQLite's -wal and -shm files beside it, which take its mode) is made with mode 0600.
 
+A gallery service owns its store while it runs (`ServeLock`): it holds an exclusive `flock` on G.serve.lock beside
+the store (its pid and URL written in it), and every write of a store object of another process (each goes
+through `_transaction`) is refused with `GalleryServed`, naming the service's URL; reads go on (WAL). The kernel
+lets the lock go when the service ends, however it ends (SIGKILL too): the lock file left behind blocks nothing.
+
 Encryption at rest (optional; pip install 'facerec3d[crypto]'): with a `TemplateKey` — given, or from the
 environment: FACEREC3D_GALLERY_KEY_FILE (a file holding the key) or FACEREC3D_GALLERY_KEY (the key), 64 hex
 digits — every array (the templates', and a learnt matcher's) is stored as AES-256-GCM ciphertext: a random
@@ -63,6 +68,11 @@ from facerec3d.matching.checks import check_template
 from facerec3d.matching.registry import restore_state, stored_matcher
 from facerec3d.preprocess.pipeline import PreprocessConfig
 
+try:
+    import fcntl
+except ImportError:  # not Unix (Windows): no service lock, as before
+    fcntl = None
+
 FORMAT = "facerec3d-gallery-2"
 
 _SCHEMA = """
@@ -88,6 +98,109 @@ class GalleryError(FaceRec3DError):
 
 class AlreadyEnrolled(GalleryError):
     """The source, or a scan with the same content, is already enrolled."""
+
+
+class GalleryServed(GalleryError):
+    """A gallery service holds the store (`ServeLock`): change it through the service, or stop the service."""
+
+
+SERVE_LOCK_SUFFIX = ".serve.lock"
+_HELD: dict[str, "ServeLock"] = {}  # the serve locks this process holds, by lock file: its own stores write freely
+
+
+def serve_lock_path(path: str | PathLike) -> Path:
+    """The lock file a service holds beside the store (of the file itself, a symbolic link followed)."""
+    return Path(os.path.realpath(path) + SERVE_LOCK_SUFFIX)
+
+
+def _holder(fd: int) -> tuple[str, str | None]:
+    """(who, URL or None) of the service a lock file's content names."""
+    try:
+        record = json.loads(os.pread(fd, 4096, 0) or b"{}")
+        pid, url = int(record["pid"]), record.get("url")
+        return f"a gallery service (pid {pid}{f', {url}' if url else ''})", url if isinstance(url, str) else None
+    except (OSError, ValueError, TypeError, KeyError):  # being written, or damaged
+        return "a gallery service", None
+
+
+def served_by(path: str | PathLike) -> tuple[str, str | None] | None:
+    """(who, URL or None) of the gallery service of another process holding the store, or None when none does:
+    a shared `flock` on its lock file, taken and let go at once, is refused only while a service lives."""
+    lock = serve_lock_path(path)
+    if fcntl is None or str(lock) in _HELD:
+        return None
+    try:
+        fd = os.open(lock, os.O_RDONLY | os.O_CLOEXEC)
+    except OSError:  # no lock file: never served here
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        return None  # (let go as the file closes)
+    except BlockingIOError:
+        return _holder(fd)
+    finally:
+        os.close(fd)
+
+
+class ServeLock:
+    """A gallery service's hold on its store for its whole life: an exclusive `flock` on G.serve.lock (made with
+    mode 0600, and left there: the next service reuses it) with the pid and `url` written in it. While it is held,
+    store objects of other processes refuse every write (`GalleryServed`), and a second service is refused
+    (`GalleryServed`, after `wait_s`: a writer's check holds the lock shared for an instant). `release`, or the end
+    of the process however it ends, lets it go."""
+
+    def __init__(self, path: str | PathLike, url: str | None = None, wait_s: float = 2.0):
+        self.path, self.lock_path, self._fd = Path(path), serve_lock_path(path), None
+        if fcntl is None:
+            return
+        try:
+            fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+        except OSError as e:
+            raise GalleryError(f"{self.path}: cannot make the service's lock file {self.lock_path} ({e.strerror}); "
+                               "the gallery's folder must be writable") from None
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    who, held_url = _holder(fd)
+                    os.close(fd)
+                    raise GalleryServed(f"{self.path}: {who} serves this gallery already: use it "
+                                        f"(--server {held_url or 'URL'}) or stop it first") from None
+                time.sleep(0.05)
+        os.ftruncate(fd, 0)
+        os.write(fd, json.dumps({"pid": os.getpid(), "url": url}).encode() + b"\n")
+        self._fd = fd
+        _HELD[str(self.lock_path)] = self
+
+    def release(self) -> None:
+        """Let the store go."""
+        if self._fd is not None:
+            _HELD.pop(str(self.lock_path), None)
+            os.close(self._fd)
+            self._fd = None
+
+    def __enter__(self) -> "ServeLock":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def _forked() -> None:
+    """(in a forked child: the service's worker processes) Close the inherited lock files: a `flock` lives while any
+    process holds its file open, and a worker outliving a killed service must not keep the store held."""
+    for lock in _HELD.values():
+        if lock._fd is not None:
+            os.close(lock._fd)
+            lock._fd = None
+    _HELD.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forked)
 
 
 @dataclass(frozen=True)
@@ -293,8 +406,9 @@ class GalleryStore:
                 raise GalleryError(f"{self.path}: the gallery's templates are not encrypted, but a key is given "
                                    f"({self.key.source}): encrypt them first (facerec3d gallery {self.path} rekey "
                                    f"--new-key-file FILE), or unset {KEY_FILE_ENV} and {KEY_ENV}")
-            self._db.execute("INSERT OR REPLACE INTO meta VALUES ('encryption', ?)",
-                             (json.dumps({"scheme": SCHEME, "key_check": self.key.check}),))
+            with self._transaction():
+                self._db.execute("INSERT OR REPLACE INTO meta VALUES ('encryption', ?)",
+                                 (json.dumps({"scheme": SCHEME, "key_check": self.key.check}),))
             return
         try:
             check = json.loads(encryption)["key_check"]
@@ -389,8 +503,15 @@ class GalleryStore:
 
     @contextmanager
     def _transaction(self) -> Iterator[None]:
+        """A write transaction (every write is one): refused (GalleryServed) while a service of another process
+        holds the store. Checked holding SQLite's write lock, so a service starting meanwhile waits for this
+        transaction (its first write, `check_writable`) before it loads the gallery, and sees it."""
         self._db.execute("BEGIN IMMEDIATE")
         try:
+            if (held := served_by(self.path)) is not None:
+                who, url = held
+                raise GalleryServed(f"{self.path}: {who} holds this gallery: change it through the service "
+                                    f"(--server {url or 'URL'}), or stop the service first")
             yield
         except BaseException:
             self._db.execute("ROLLBACK")

@@ -50,7 +50,7 @@ from starlette.responses import JSONResponse, PlainTextResponse
 from facerec3d.errors import FaceRec3DError, ScanFormatError
 from facerec3d.evaluation.calibrate import MAX_SCANS, OWN_SCANS, threshold_record
 from facerec3d.gallery.cascade import CascadeConfig
-from facerec3d.gallery.store import Entry, GalleryError
+from facerec3d.gallery.store import Entry, GalleryError, ServeLock
 from facerec3d.io import SUPPORTED_SUFFIXES, Intrinsics, scan_stem, scan_suffix
 from facerec3d.server.jobs import Mismatch, Rejected, Upload, enrol_job, probe_job
 from facerec3d.server.keys import KeyFile
@@ -911,9 +911,13 @@ def serve(gallery: str | Path, keys: str | Path, host: str = "127.0.0.1", port: 
 
     settings = settings or ServiceSettings()
     sock = bind_address(host, port)  # before the gallery loads and the banner says the service is up
+    hold = None
+    scheme = "https" if ssl_certfile else "http"
     try:
         port = sock.getsockname()[1]
         key_file = KeyFile(keys)  # refuse to start without keys
+        # the store is the service's while it runs: other processes' writes to it, and a second service, are refused
+        hold = ServeLock(gallery, f"{scheme}://{f'[{host}]' if ':' in host else host}:{port}")
         one_thread_per_process()  # the service's own BLAS: one thread (work runs on the workers)
         live = LiveGallery(gallery, jobs, scheduler, method, options, config,
                            AuditLog(audit if audit is not None else Path(str(gallery) + ".audit.jsonl")), max_points)
@@ -923,7 +927,6 @@ def serve(gallery: str | Path, keys: str | Path, host: str = "127.0.0.1", port: 
                                                    access_log=False, ssl_certfile=ssl_certfile,
                                                    ssl_keyfile=ssl_keyfile,
                                                    timeout_graceful_shutdown=max(5, int(settings.timeout_s))))
-            scheme = "https" if ssl_certfile else "http"
             echo(f"facerec3d service: {gallery} ({len(live.entries)} entries, method {live.matcher.name}, "
                  f"{live.engine.workers} worker{'s' * (live.engine.workers != 1)}) on {scheme}://{host}:{port} "
                  f"(API docs: /docs)")
@@ -931,4 +934,6 @@ def serve(gallery: str | Path, keys: str | Path, host: str = "127.0.0.1", port: 
         finally:
             service.close()
     finally:
+        if hold is not None:
+            hold.release()
         sock.close()  # uvicorn closes it on shutdown; here also when loading failed

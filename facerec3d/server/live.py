@@ -15,7 +15,8 @@ when the last of them is done. A probe therefore sees the gallery before or afte
 Durability: all store access is on one writer thread (one SQLite connection, WAL, synchronous=FULL, one
 transaction per enrolment), so changes are serialised and `enrol` returns only after the commit; a kill at any
 moment loses no returned entry and leaves no half-written one (SQLite rolls an open transaction back).
-The service should own its store while it runs: changes made by other processes are not seen until restart.
+The service owns its store while it runs (`serve` holds its `store.ServeLock`): other processes' writes to it
+are refused, since the service would not see them until restart; their reads go on.
 
 Calibration (`calibration_scores`, `record_threshold`): scans sent for it are scored against one version, a probe
 at a time with no lock held, so identifications go on between them; only the threshold's record is written on
