@@ -780,9 +780,9 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
     cache = _cache_folder(cache)
     with Engine.create(jobs, scheduler, items=len(records)) as engine:
         matcher = _gallery_matcher(gallery) if method is None and not (options or train or model) else None
-        if matcher is None:
-            matcher, _ = trained_matcher(method or DEFAULT_METHOD, options, train=train, model=model, workers=engine,
-                                         cache=cache, config=config, echo=_to_stderr)
+        if matcher is None:  # --method-config or --train without --method: the settings of the gallery's own method
+            matcher, _ = trained_matcher(method or _gallery_method(gallery) or DEFAULT_METHOD, options, train=train,
+                                         model=model, workers=engine, cache=cache, config=config, echo=_to_stderr)
         with GalleryStore(gallery, create=True) as store:
             _note_new_method(store, matcher)
             with tqdm(total=len(records), unit="scan", desc="enrolling") as bar:
@@ -826,6 +826,19 @@ def _gallery_matcher(gallery):
         return None
     with GalleryStore(gallery) as store:
         return store.matcher() if store.stats()["entries"] else None
+
+
+def _gallery_method(gallery, empty: bool = False) -> str | None:
+    """The method an existing gallery store was enrolled with (one with no entries too when `empty`; enroll gives
+    an empty one another method, serve checks it); None for a new one. A --method-config given without --method
+    is that method's settings, not the default method's."""
+    from facerec3d.gallery.store import GalleryStore
+
+    if not Path(gallery).is_file() or not Path(gallery).stat().st_size:
+        return None
+    with GalleryStore(gallery) as store:
+        st = store.stats()
+        return st["method"] if st["entries"] or empty else None
 
 
 @main.command()
@@ -1319,6 +1332,8 @@ def serve(gallery, keys_file, host, port, jobs, scheduler, method, method_config
     workers = 1 if scheduler is None and (jobs or 1) <= 1 else (jobs or os.cpu_count() or 1)
     settings = ServiceSettings(concurrency=concurrency or 2 * workers, queue=queue, per_key=per_key,
                                timeout_s=timeout, max_upload_bytes=int(max_upload_mb * 2**20))
+    if method is None and method_config:  # the settings of the gallery's own method, checked against its options
+        method = _gallery_method(gallery, empty=True)
     run(gallery, keys_file, host, port, jobs, scheduler, method,
         read_settings(method_config) if method_config else None,
         PreprocessConfig.load(config_file) if config_file else None, settings, max_points, audit,
