@@ -312,6 +312,9 @@ MIN_EXTENT_MM = 50.0  # the least a face spans (mm, the longest side of its boun
 MAX_EXTENT_MM = 50_000.0  # the most a scene with a face spans (mm): depth cameras see 5-10 m. The detector's head
 #   search bins the scene in 25 mm cells (`crown_heights`): a face read in the wrong unit (×1000: 200 m) made that
 #   grid take 7.6 GB; at 50 m it takes 32 MB
+MAX_FACE_DISTANCE_MM = 5_000.0  # the farthest a depth camera sees a face (mm): the Kinect v2 reads to 4.5 m, and
+#   at 5 m its pixel spans 14 mm (fx 365 px), a face ~11 pixels across with the nose in one or two; a face read
+#   at 10 times its depth (a frame of 0.1 mm units read as mm, a cloud scaled ×10) lies 5-15 m away
 
 
 def check_points(scan: FaceScan) -> None:
@@ -340,12 +343,31 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
     check_points(scan)
     if scan.grid is None:
         raise ValueError("face detection needs a range-image grid (see preprocess.gridify)")
-    if config.proposer:
-        try:
-            return _detect_face(scan, config)
-        except FailureToAcquire:
-            config = replace(config, proposer="")
-    return _detect_face(scan, config)
+    try:
+        if config.proposer:
+            try:
+                return _detect_face(scan, config)
+            except FailureToAcquire:
+                config = replace(config, proposer="")
+        return _detect_face(scan, config)
+    except FailureToAcquire as e:
+        if hint := too_far(scan):
+            raise FailureToAcquire(f"{e.reason}; {hint}", e.path) from None
+        raise
+
+
+def too_far(scan: FaceScan) -> str | None:
+    """For a scan with no face found: when its nearest point lies beyond MAX_FACE_DISTANCE_MM of the camera (the
+    origin of a depth frame's points and of a cloud in camera coordinates), that its depth likely reads too large
+    (a depth image of 0.1 mm units read as millimetres, a cloud scaled ×10); else None. A cloud or mesh whose
+    origin is not its camera has points near the origin, and gets no hint."""
+    nearest = float(np.sqrt(np.min(np.einsum("ij,ij->i", scan.points, scan.points))))
+    if not nearest > MAX_FACE_DISTANCE_MM:
+        return None
+    return (f"its nearest point is {nearest / 1000:.3g} m from the camera, beyond where a depth camera sees a face "
+            f"(~{MAX_FACE_DISTANCE_MM / 1000:g} m): is its depth 10 times too large? facerec3d reads millimetres (a "
+            "depth image needs its depth scale in the intrinsics, e.g. depth_unit_mm 0.1 for 0.1 mm units; a mesh "
+            "or point cloud, scaling)")
 
 
 def _detect_face(scan: FaceScan, config: DetectConfig) -> Detection:
