@@ -10,7 +10,7 @@ from pathlib import Path
 
 import click
 
-from facerec3d.config import DEFAULT_METHOD
+from facerec3d.config import DEFAULT_METHOD, DEFAULT_THRESHOLDS
 from facerec3d.errors import FaceRec3DError
 
 
@@ -882,13 +882,19 @@ def identify(probe, gallery, k, config_file, cache, intrinsics, cascade, shortli
         click.echo(f"{r:>4}  {str(entry.subject):<12}{str(entry.scan_id):<20}{score:>12.4f}")
 
 
+def _default_thresholds() -> str:
+    """The methods' default verification thresholds as `verify --help` names them, from config.DEFAULT_THRESHOLDS
+    (ICP's score is a −MSE, in mm²)."""
+    return ", ".join(f"{m} {float(v)!r}{' mm²' if m == 'icp' else ''}" for m, v in DEFAULT_THRESHOLDS.items())
+
+
 @main.command()
 @click.argument("probe", type=click.Path(exists=True, dir_okay=False))
 @click.option("--gallery", "gallery", type=click.Path(dir_okay=False), help="Gallery store (or --server).")
 @click.option("--claim", required=True, help="The claimed subject ID.")
 @click.option("--threshold", type=float, callback=lambda ctx, param, v: _finite(v, "--threshold"),
-              help="Accept scores >= this (default: the gallery's calibrated threshold, "
-              "see 'gallery STORE calibrate'; else for icp -1.8 mm², the EER point of synthetic laser scans).")
+              help="Accept scores >= this (default: the gallery's calibrated threshold, see 'gallery STORE "
+              f"calibrate'; else the method's default: {_default_thresholds()}; other methods need one calibrated).")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False),
               help="Preprocessing settings; must be the gallery's (default: the gallery's).")
 @_CACHE_OPTION

@@ -76,6 +76,18 @@ def test_a_threshold_that_is_no_number_is_refused(tmp_path):
         assert r.exit_code == 2 and f"--threshold: must be a finite number, not {float(value)}" in r.output, r.output
 
 
+def test_verify_help_names_the_calibrated_threshold_and_every_methods_default():
+    """`verify --help` named only ICP's default threshold (-1.8 mm²): the gallery's calibrated threshold is used,
+    else its method's default, each of the table the code uses."""
+    from facerec3d.gallery.service import DEFAULT_THRESHOLDS
+
+    r = CliRunner().invoke(main, ["verify", "--help"])
+    text = " ".join(r.output.split())
+    assert r.exit_code == 0 and "default: the gallery's calibrated threshold" in text, text
+    said = ", ".join(f"{m} {v!r}{' mm²' if m == 'icp' else ''}" for m, v in DEFAULT_THRESHOLDS.items())
+    assert f"else the method's default: {said};" in text and "fusion 4.0, embedding 0.5, icp -1.8 mm²" in text, text
+
+
 @pytest.mark.parametrize("option, value, said", [
     ("--port", "70000", "not in the range 0<=x<=65535"), ("--port", "-1", "not in the range 0<=x<=65535"),
     ("--timeout", "nan", "must be a finite number, not nan"), ("--timeout", "inf", "must be a finite number"),
