@@ -1,3 +1,4 @@
+import re
 from pathlib import Path
 
 import pytest
@@ -86,6 +87,16 @@ def test_verify_help_names_the_calibrated_threshold_and_every_methods_default():
     assert r.exit_code == 0 and "default: the gallery's calibrated threshold" in text, text
     said = ", ".join(f"{m} {v!r}{' mm²' if m == 'icp' else ''}" for m, v in DEFAULT_THRESHOLDS.items())
     assert f"else the method's default: {said};" in text and "fusion 4.0, embedding 0.5, icp -1.8 mm²" in text, text
+
+
+@pytest.mark.parametrize("group", ["gallery", "keys"])
+def test_a_groups_help_names_every_command_it_has(group):
+    """`gallery --help` named "list, remove ID, stats" but not calibrate and rekey."""
+    r = CliRunner().invoke(main, [group, "--help"])
+    intro = " ".join(r.output.split("Options:")[0].split())
+    assert r.exit_code == 0 and main.commands[group].commands, r.output
+    for name in main.commands[group].commands:
+        assert re.search(rf"[:,] {name}[,.]", intro), (name, intro)
 
 
 @pytest.mark.parametrize("option, value, said", [
