@@ -300,6 +300,22 @@ def test_a_face_read_ten_times_too_deep_fails_saying_it_lies_beyond_any_depth_ca
     assert too_far(scan) is None and too_far(analytic_frame(NOT_FACES["hand"])) is None  # at 1.25 m: no such hint
 
 
+def test_a_nose_with_no_surface_to_measure_it_against_says_so_not_minus_infinity(monkeypatch):
+    """A bad 8-bit frame failed with "nothing protrudes at the fitted nose (tip -inf mm above its surroundings, a
+    nose needs 6)": `nose_heights` is −inf where there is no scanned surface at the tip or too little around it."""
+    from facerec3d.preprocess import detect
+
+    real = detect.rank_placements
+    no_surface = lambda *a, **k: [x._replace(heights=(-np.inf, -np.inf), face_shaped=False) for x in real(*a, **k)]
+    monkeypatch.setattr(detect, "rank_placements", no_surface)
+    with pytest.raises(FailureToAcquire) as e:
+        Preprocessor()(kinect_face(0)[0])
+    assert e.value.reason == ("no face-shaped surface: nothing protrudes at the fitted nose (no height to measure: "
+                              "too little scanned surface at the tip or around it; a nose needs 6 mm above its "
+                              "surroundings)"), e.value.reason
+    assert detect.tip_above(5.96, 6, "its surroundings") == "tip 5.96 mm above its surroundings, a nose needs 6"
+
+
 def test_a_face_in_micrometres_or_a_far_point_is_refused_with_memory_bounded(tmp_path):
     """A face read in the wrong unit (×1000: 200 m across) made the head search's 25 mm grid take 7.6 GB (and a
     service answer 500 from a MemoryError); a cloud with one coordinate of 1e200 broke the orientation (IndexError).

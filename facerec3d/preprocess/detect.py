@@ -421,12 +421,11 @@ def _detect_face(scan: FaceScan, config: DetectConfig) -> Detection:
         if fit.inlier_fraction < config.min_inliers:
             why = f"the face model does not fit ({fit.inlier_fraction:.0%} of points)"
         elif protrusion < config.min_protrusion_mm:
-            why = (f"no face-shaped surface: nothing protrudes at the fitted nose (tip "
-                   f"{short_of(protrusion, config.min_protrusion_mm)} mm above its surroundings, a nose needs "
-                   f"{config.min_protrusion_mm:g})")
+            why = ("no face-shaped surface: nothing protrudes at the fitted nose "
+                   f"({tip_above(protrusion, config.min_protrusion_mm, 'its surroundings')})")
         elif dome < config.min_dome_mm:
-            why = (f"no face-shaped surface: a rounded surface, no nose (tip {short_of(dome, config.min_dome_mm)} mm "
-                   f"above the dome around it, a nose needs {config.min_dome_mm:g})")
+            why = ("no face-shaped surface: a rounded surface, no nose "
+                   f"({tip_above(dome, config.min_dome_mm, 'the dome around it')})")
         else:
             why = f"no face-shaped surface: the camera saw only {seen:.0%} of where the fitted face would be"
         raise FailureToAcquire(why, scan.meta.path)
@@ -772,6 +771,15 @@ def nose_heights(points: np.ndarray, fit: ModelFit, config: DetectConfig = Detec
     design = lambda q: np.c_[np.ones(len(q)), q[:, :2], (q[:, :2] ** 2).sum(axis=1)]  # z = a + b x + c y + κ r²
     coef = np.linalg.lstsq(design(ring), ring[:, 2], rcond=None)[0]
     return plane, float(np.percentile(tip[:, 2] - design(tip) @ coef, 90))
+
+
+def tip_above(height: float, need: float, around: str) -> str:
+    """How far a `nose_heights` height falls short of `need` (mm) above `around`, for a failure's reason: without a
+    height (−inf: no scanned surface at the tip, or too little around it), that there was nothing to measure."""
+    if not np.isfinite(height):
+        return f"no height to measure: too little scanned surface at the tip or around it; a nose needs {need:g} mm " \
+               f"above {around}"
+    return f"tip {short_of(height, need)} mm above {around}, a nose needs {need:g}"
 
 
 def is_nose(heights: tuple[float, float], config: DetectConfig = DetectConfig()) -> bool:
