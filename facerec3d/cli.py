@@ -11,7 +11,7 @@ from pathlib import Path
 import click
 
 from facerec3d.config import DEFAULT_METHOD, DEFAULT_THRESHOLDS
-from facerec3d.errors import FaceRec3DError
+from facerec3d.errors import FaceRec3DError, threshold_text
 
 
 def friendly(fn):
@@ -579,8 +579,8 @@ def _keeps_given_threshold(kept: dict | None, where: str, entries: int | None = 
     then = kept.get("entries")
     grown = (f"; calibrated when the gallery held {then} entries, it holds {entries} now"
              if entries is not None and then is not None and then != entries else "")
-    click.echo(f"kept the verification threshold {kept['value']:.4g} calibrated on {kept['data']}{grown} "
-               f"(recalibrate: facerec3d gallery {where} calibrate SCANS ...)")
+    click.echo(f"kept the verification threshold {threshold_text(kept['value'])} calibrated on {kept['data']}"
+               f"{grown} (recalibrate: facerec3d gallery {where} calibrate SCANS ...)")
     return True
 
 
@@ -911,7 +911,8 @@ def verify(probe, gallery, claim, threshold, config_file, cache, intrinsics, ser
                                    intrinsics=intrinsics)
         accepted, score, threshold = answer["accepted"], answer["score"], answer["threshold"]
         score = float("nan") if score is None else score
-        click.echo(f"{'accept' if accepted else 'reject'}: claim {claim}, score {score:.4f} (threshold {threshold:g})")
+        click.echo(f"{'accept' if accepted else 'reject'}: claim {claim}, score {score:.4f} "
+                   f"(threshold {threshold_text(threshold)})")
         sys.exit(0 if accepted else 1)
     from facerec3d.gallery.service import verify_scan
     from facerec3d.gallery.store import GalleryStore
@@ -927,7 +928,8 @@ def verify(probe, gallery, claim, threshold, config_file, cache, intrinsics, ser
             hint = (f"hint: method {matcher.name!r} normalises each probe's scores over the gallery's people, and "
                     "this gallery holds one: every claim scores 0. Enrol more people, or enrol this one with "
                     "--method icp")
-    click.echo(f"{'accept' if accepted else 'reject'}: claim {claim}, score {score:.4f} (threshold {threshold:g})")
+    click.echo(f"{'accept' if accepted else 'reject'}: claim {claim}, score {score:.4f} "
+               f"(threshold {threshold_text(threshold)})")
     if hint:
         click.echo(hint, err=True)
     sys.exit(0 if accepted else 1)
@@ -946,11 +948,11 @@ def _threshold_hint(store, claim: str, threshold: float) -> str | None:
     resolutions = [float(r) for r in resolutions if isinstance(r, (int, float))]
     if not resolutions or max(resolutions) <= DEFAULT_THRESHOLD_RESOLUTION_MM:
         return None
-    return (f"hint: the default threshold {threshold:g} was chosen on laser scans matched at 1 mm; this gallery's faces "
-            f"are matched at {max(resolutions):.1f} mm (a depth camera's), where genuine scores are lower: calibrate the "
-            "gallery's own ('facerec3d gallery STORE calibrate SCANS') or choose --threshold from an evaluation on "
-            "this sensor's scans (metrics.json: threshold_at_eer, threshold_at_far_0.001; see the depth-camera quick "
-            "start in the docs)")
+    return (f"hint: the default threshold {threshold_text(threshold)} was chosen on laser scans matched at 1 mm; this "
+            f"gallery's faces are matched at {max(resolutions):.1f} mm (a depth camera's), where genuine scores are "
+            "lower: calibrate the gallery's own ('facerec3d gallery STORE calibrate SCANS') or choose --threshold "
+            "from an evaluation on this sensor's scans (metrics.json: threshold_at_eer, threshold_at_far_0.001; see "
+            "the depth-camera quick start in the docs)")
 
 
 class _GalleryGroup(click.Group):
@@ -1072,8 +1074,8 @@ def _threshold_line(r: dict, where) -> str:
     """What a calibration recorded, in one line: the threshold, its rule and pairs, its data and where."""
     extra = f", TAR {r['tar']:.1%} on {r['genuine_pairs']} genuine pairs" if "tar" in r else ""
     failed = f", {r['failed_scans']} of {r['scans']} scans unusable" if r.get("failed_scans") else ""
-    return (f"verification threshold {r['value']:.4g} ({r['rule']}: FMR {r['fmr']:.2%} on {r['impostor_pairs']} "
-            f"impostor pairs{extra}; {r['data']}{failed}) recorded in {where}")
+    return (f"verification threshold {threshold_text(r['value'])} ({r['rule']}: FMR {r['fmr']:.2%} on "
+            f"{r['impostor_pairs']} impostor pairs{extra}; {r['data']}{failed}) recorded in {where}")
 
 
 @gallery.command("calibrate")
@@ -1134,8 +1136,8 @@ def gallery_stats(store):
                f"file {st['file_bytes'] / 2**20:.1f} MiB; {st['failures_to_enrol']} failures to enrol; "
                f"method {st['method']} {st['options']}")
     if (t := st.get("threshold")) is not None:
-        click.echo(f"verification threshold {t['value']:.4g} ({t['rule']}, {t['data']}, {t['entries']} entries, "
-                   f"{t['calibrated_at']})")
+        click.echo(f"verification threshold {threshold_text(t['value'])} ({t['rule']}, {t['data']}, {t['entries']} "
+                   f"entries, {t['calibrated_at']})")
 
 
 @gallery.command("rekey")
