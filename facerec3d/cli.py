@@ -10,8 +10,8 @@ from pathlib import Path
 
 import click
 
-from facerec3d.config import DEFAULT_METHOD
-from facerec3d.errors import FaceRec3DError
+from facerec3d.config import DEFAULT_METHOD, DEFAULT_THRESHOLDS
+from facerec3d.errors import FaceRec3DError, threshold_text
 
 
 def friendly(fn):
@@ -579,8 +579,8 @@ def _keeps_given_threshold(kept: dict | None, where: str, entries: int | None = 
     then = kept.get("entries")
     grown = (f"; calibrated when the gallery held {then} entries, it holds {entries} now"
              if entries is not None and then is not None and then != entries else "")
-    click.echo(f"kept the verification threshold {kept['value']:.4g} calibrated on {kept['data']}{grown} "
-               f"(recalibrate: facerec3d gallery {where} calibrate SCANS ...)")
+    click.echo(f"kept the verification threshold {threshold_text(kept['value'])} calibrated on {kept['data']}"
+               f"{grown} (recalibrate: facerec3d gallery {where} calibrate SCANS ...)")
     return True
 
 
@@ -780,9 +780,9 @@ def enroll(data, gallery, method, method_config, train, model, config_file, subj
     cache = _cache_folder(cache)
     with Engine.create(jobs, scheduler, items=len(records)) as engine:
         matcher = _gallery_matcher(gallery) if method is None and not (options or train or model) else None
-        if matcher is None:
-            matcher, _ = trained_matcher(method or DEFAULT_METHOD, options, train=train, model=model, workers=engine,
-                                         cache=cache, config=config, echo=_to_stderr)
+        if matcher is None:  # --method-config or --train without --method: the settings of the gallery's own method
+            matcher, _ = trained_matcher(method or _gallery_method(gallery) or DEFAULT_METHOD, options, train=train,
+                                         model=model, workers=engine, cache=cache, config=config, echo=_to_stderr)
         with GalleryStore(gallery, create=True) as store:
             store.check_writable()  # before the progress bar: a read-only store, or one a service holds, in one line
             _note_new_method(store, matcher)
@@ -829,6 +829,19 @@ def _gallery_matcher(gallery):
         return store.matcher() if store.stats()["entries"] else None
 
 
+def _gallery_method(gallery, empty: bool = False) -> str | None:
+    """The method an existing gallery store was enrolled with (one with no entries too when `empty`; enroll gives
+    an empty one another method, serve checks it); None for a new one. A --method-config given without --method
+    is that method's settings, not the default method's."""
+    from facerec3d.gallery.store import GalleryStore
+
+    if not Path(gallery).is_file() or not Path(gallery).stat().st_size:
+        return None
+    with GalleryStore(gallery) as store:
+        st = store.stats()
+        return st["method"] if st["entries"] or empty else None
+
+
 @main.command()
 @click.argument("probe", type=click.Path(exists=True, dir_okay=False))
 @click.option("--gallery", "gallery", type=click.Path(dir_okay=False), help="Gallery store (or --server).")
@@ -870,13 +883,19 @@ def identify(probe, gallery, k, config_file, cache, intrinsics, cascade, shortli
         click.echo(f"{r:>4}  {str(entry.subject):<12}{str(entry.scan_id):<20}{score:>12.4f}")
 
 
+def _default_thresholds() -> str:
+    """The methods' default verification thresholds as `verify --help` names them, from config.DEFAULT_THRESHOLDS
+    (ICP's score is a −MSE, in mm²)."""
+    return ", ".join(f"{m} {float(v)!r}{' mm²' if m == 'icp' else ''}" for m, v in DEFAULT_THRESHOLDS.items())
+
+
 @main.command()
 @click.argument("probe", type=click.Path(exists=True, dir_okay=False))
 @click.option("--gallery", "gallery", type=click.Path(dir_okay=False), help="Gallery store (or --server).")
 @click.option("--claim", required=True, help="The claimed subject ID.")
 @click.option("--threshold", type=float, callback=lambda ctx, param, v: _finite(v, "--threshold"),
-              help="Accept scores >= this (default: the gallery's calibrated threshold, "
-              "see 'gallery STORE calibrate'; else for icp -1.8 mm², the EER point of synthetic laser scans).")
+              help="Accept scores >= this (default: the gallery's calibrated threshold, see 'gallery STORE "
+              f"calibrate'; else the method's default: {_default_thresholds()}; other methods need one calibrated).")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False),
               help="Preprocessing settings; must be the gallery's (default: the gallery's).")
 @_CACHE_OPTION
@@ -893,7 +912,8 @@ def verify(probe, gallery, claim, threshold, config_file, cache, intrinsics, ser
                                    intrinsics=intrinsics)
         accepted, score, threshold = answer["accepted"], answer["score"], answer["threshold"]
         score = float("nan") if score is None else score
-        click.echo(f"{'accept' if accepted else 'reject'}: claim {claim}, score {score:.4f} (threshold {threshold:g})")
+        click.echo(f"{'accept' if accepted else 'reject'}: claim {claim}, score {score:.4f} "
+                   f"(threshold {threshold_text(threshold)})")
         sys.exit(0 if accepted else 1)
     from facerec3d.gallery.service import verify_scan
     from facerec3d.gallery.store import GalleryStore
@@ -909,7 +929,8 @@ def verify(probe, gallery, claim, threshold, config_file, cache, intrinsics, ser
             hint = (f"hint: method {matcher.name!r} normalises each probe's scores over the gallery's people, and "
                     "this gallery holds one: every claim scores 0. Enrol more people, or enrol this one with "
                     "--method icp")
-    click.echo(f"{'accept' if accepted else 'reject'}: claim {claim}, score {score:.4f} (threshold {threshold:g})")
+    click.echo(f"{'accept' if accepted else 'reject'}: claim {claim}, score {score:.4f} "
+               f"(threshold {threshold_text(threshold)})")
     if hint:
         click.echo(hint, err=True)
     sys.exit(0 if accepted else 1)
@@ -928,15 +949,24 @@ def _threshold_hint(store, claim: str, threshold: float) -> str | None:
     resolutions = [float(r) for r in resolutions if isinstance(r, (int, float))]
     if not resolutions or max(resolutions) <= DEFAULT_THRESHOLD_RESOLUTION_MM:
         return None
-    return (f"hint: the default threshold {threshold:g} was chosen on laser scans matched at 1 mm; this gallery's faces "
-            f"are matched at {max(resolutions):.1f} mm (a depth camera's), where genuine scores are lower: calibrate the "
-            "gallery's own ('facerec3d gallery STORE calibrate SCANS') or choose --threshold from an evaluation on "
-            "this sensor's scans (metrics.json: threshold_at_eer, threshold_at_far_0.001; see the depth-camera quick "
-            "start in the docs)")
+    return (f"hint: the default threshold {threshold_text(threshold)} was chosen on laser scans matched at 1 mm; this "
+            f"gallery's faces are matched at {max(resolutions):.1f} mm (a depth camera's), where genuine scores are "
+            "lower: calibrate the gallery's own ('facerec3d gallery STORE calibrate SCANS') or choose --threshold "
+            "from an evaluation on this sensor's scans (metrics.json: threshold_at_eer, threshold_at_far_0.001; see "
+            "the depth-camera quick start in the docs)")
 
 
 class _GalleryGroup(click.Group):
-    """`gallery STORE CMD`, or `gallery --server URL CMD` without STORE."""
+    """`gallery STORE CMD`, or `gallery --server URL CMD` without STORE. Its help ends naming every command, those
+    defined after the group too (a hand-written list missed calibrate and rekey)."""
+
+    @property
+    def help(self) -> str | None:
+        return self._help and f"{self._help.rstrip('.')}: {', '.join(self.commands)}."
+
+    @help.setter
+    def help(self, text: str | None) -> None:
+        self._help = text
 
     def parse_args(self, ctx, args):
         args, i = list(args), 0
@@ -953,7 +983,7 @@ class _GalleryGroup(click.Group):
 @_server_options
 @click.pass_context
 def gallery(ctx, store, server, api_key):
-    """Look after the gallery store STORE (or the gallery service --server URL): list, remove ID, stats."""
+    """Look after the gallery store STORE (or the gallery service --server URL)."""
     if bool(store) == bool(server) and not ctx.meta.get("facerec3d.help"):
         raise click.UsageError("give the gallery store STORE or --server URL" + (", not both" if store else "."))
     ctx.obj = store
@@ -1045,8 +1075,8 @@ def _threshold_line(r: dict, where) -> str:
     """What a calibration recorded, in one line: the threshold, its rule and pairs, its data and where."""
     extra = f", TAR {r['tar']:.1%} on {r['genuine_pairs']} genuine pairs" if "tar" in r else ""
     failed = f", {r['failed_scans']} of {r['scans']} scans unusable" if r.get("failed_scans") else ""
-    return (f"verification threshold {r['value']:.4g} ({r['rule']}: FMR {r['fmr']:.2%} on {r['impostor_pairs']} "
-            f"impostor pairs{extra}; {r['data']}{failed}) recorded in {where}")
+    return (f"verification threshold {threshold_text(r['value'])} ({r['rule']}: FMR {r['fmr']:.2%} on "
+            f"{r['impostor_pairs']} impostor pairs{extra}; {r['data']}{failed}) recorded in {where}")
 
 
 @gallery.command("calibrate")
@@ -1107,8 +1137,8 @@ def gallery_stats(store):
                f"file {st['file_bytes'] / 2**20:.1f} MiB; {st['failures_to_enrol']} failures to enrol; "
                f"method {st['method']} {st['options']}")
     if (t := st.get("threshold")) is not None:
-        click.echo(f"verification threshold {t['value']:.4g} ({t['rule']}, {t['data']}, {t['entries']} entries, "
-                   f"{t['calibrated_at']})")
+        click.echo(f"verification threshold {threshold_text(t['value'])} ({t['rule']}, {t['data']}, {t['entries']} "
+                   f"entries, {t['calibrated_at']})")
 
 
 @gallery.command("rekey")
@@ -1320,6 +1350,8 @@ def serve(gallery, keys_file, host, port, jobs, scheduler, method, method_config
     workers = 1 if scheduler is None and (jobs or 1) <= 1 else (jobs or os.cpu_count() or 1)
     settings = ServiceSettings(concurrency=concurrency or 2 * workers, queue=queue, per_key=per_key,
                                timeout_s=timeout, max_upload_bytes=int(max_upload_mb * 2**20))
+    if method is None and method_config:  # the settings of the gallery's own method, checked against its options
+        method = _gallery_method(gallery, empty=True)
     run(gallery, keys_file, host, port, jobs, scheduler, method,
         read_settings(method_config) if method_config else None,
         PreprocessConfig.load(config_file) if config_file else None, settings, max_points, audit,

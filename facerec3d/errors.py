@@ -71,6 +71,14 @@ class SettingsError(FaceRec3DError, ValueError):
         return SettingsError(self.path if self.path is not None else path, field, self.reason)
 
 
+def threshold_text(value: float) -> str:
+    """A verification threshold as printed beside the scores compared with it: short (4 significant digits) when
+    that reads back as the same number, else every digit it takes (a threshold calibrated just above a score,
+    6.000000000000001, is not "6", which a score of 6.0000 would seem to reach)."""
+    text = f"{value:.4g}"
+    return text if float(text) == value else repr(float(value))
+
+
 def short_of(value: float, limit: float, digits: int = 1) -> str:
     """`value` printed for a message that says it falls short of `limit`, with as many decimals (at least
     `digits`) as it takes to read as less than the limit when printed (`short_of(5.96, 6)` is "5.96", never "6")."""

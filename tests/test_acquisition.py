@@ -4,6 +4,8 @@ Depth frames are made here with the pinhole model of a Kinect v2 (fx 365 px, 3.4
 8 mm steps) and of a laser scanner, so the tests cover a coarse consumer camera without the shared real data.
 """
 
+import re
+
 import numpy as np
 import pytest
 
@@ -269,6 +271,49 @@ def test_the_compiled_differences_are_numpys():
         got = _differences(z, order)
         ref = ref[np.isfinite(ref)]
         assert len(got) == len(ref) > 500 and np.array_equal(np.sort(got), np.sort(ref))
+
+
+def test_a_face_read_ten_times_too_deep_fails_saying_it_lies_beyond_any_depth_camera(tmp_path):
+    """A depth image of 0.1 mm units read as mm, or a cloud scaled ×10, put the face ~12 m away in a scene metres
+    wide: within the spans `check_points` allows, it failed with only "no face-like surface found"; the failure
+    now says how far its nearest point is and that the depth may read 10 times too large."""
+    from facerec3d.preprocess import batch
+
+    scan = kinect_face(0)[0]
+    xyz, valid = scan.to_range_image()
+    np.save(tmp_path / "cloud.npy", scan.points * 10.0)
+    for far in (FaceScan.from_range_image(xyz * 10.0, valid), None):
+        if far is None:
+            error = batch.preprocess_files([tmp_path / "cloud.npy"], jobs=1)
+            error = next(iter(error)).error
+        else:
+            with pytest.raises(FailureToAcquire) as e:
+                Preprocessor()(far)
+            error = str(e.value)
+        said = re.search(r"its nearest point is ([0-9.]+) m from the camera, beyond where a depth camera sees a "
+                         r"face \(~5 m\): is its depth 10 times too large\? facerec3d reads millimetres", error)
+        nearest = np.linalg.norm(scan.points, axis=1).min() * 10.0 / 1000.0  # (the detector sees it smoothed)
+        assert said and float(said[1]) == pytest.approx(nearest, rel=0.02), error
+        assert "\n" not in error
+    from facerec3d.preprocess.detect import too_far
+
+    assert too_far(scan) is None and too_far(analytic_frame(NOT_FACES["hand"])) is None  # at 1.25 m: no such hint
+
+
+def test_a_nose_with_no_surface_to_measure_it_against_says_so_not_minus_infinity(monkeypatch):
+    """A bad 8-bit frame failed with "nothing protrudes at the fitted nose (tip -inf mm above its surroundings, a
+    nose needs 6)": `nose_heights` is −inf where there is no scanned surface at the tip or too little around it."""
+    from facerec3d.preprocess import detect
+
+    real = detect.rank_placements
+    no_surface = lambda *a, **k: [x._replace(heights=(-np.inf, -np.inf), face_shaped=False) for x in real(*a, **k)]
+    monkeypatch.setattr(detect, "rank_placements", no_surface)
+    with pytest.raises(FailureToAcquire) as e:
+        Preprocessor()(kinect_face(0)[0])
+    assert e.value.reason == ("no face-shaped surface: nothing protrudes at the fitted nose (no height to measure: "
+                              "too little scanned surface at the tip or around it; a nose needs 6 mm above its "
+                              "surroundings)"), e.value.reason
+    assert detect.tip_above(5.96, 6, "its surroundings") == "tip 5.96 mm above its surroundings, a nose needs 6"
 
 
 def test_a_face_in_micrometres_or_a_far_point_is_refused_with_memory_bounded(tmp_path):

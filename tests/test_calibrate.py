@@ -9,6 +9,7 @@ from click.testing import CliRunner
 
 from facerec3d.cli import main
 from facerec3d.datasets.synthetic import DatasetConfig, sensor_profile, write_dataset
+from facerec3d.errors import threshold_text
 from facerec3d.evaluation.calibrate import (OWN_SCANS, calibrate, calibration_scores, gallery_records,
                                             threshold_at_fmr, threshold_record)
 from facerec3d.evaluation.metrics import eer, roc
@@ -169,6 +170,35 @@ def test_enrolling_more_keeps_a_threshold_calibrated_on_scans_given_for_it(kinec
     assert run.exit_code == 0 and "recorded in" not in run.output, run.output  # up to date: not again
 
 
+def test_a_printed_threshold_reads_back_as_itself_not_as_the_score_below_it(gallery, tmp_path):
+    """A threshold stored just above an integer score (6.000000000000001) printed as "threshold 6", so "reject:
+    claim X, score 6.0000 (threshold 6)" could be read; verify, stats and calibrate print every digit it takes
+    (and the short form where that is the number)."""
+    import re
+    import shutil
+
+    g = tmp_path / "g.sqlite"
+    shutil.copy(gallery, g)
+    above = float(np.nextafter(6.0, np.inf))
+    with GalleryStore(g) as store:
+        store.set_threshold({"value": above, "rule": "fmr=0.01", "data": "x", "entries": 15, "calibrated_at": "now"})
+        entry = store.entries()[0]
+        probe = store.entries(subject=entry.subject)[1].source
+    run = CliRunner().invoke(main, ["gallery", str(g), "stats"])
+    assert "verification threshold 6.000000000000001 (fmr=0.01, x, 15 entries, now)" in run.output, run.output
+    run = CliRunner().invoke(main, ["verify", str(probe), "--gallery", str(g), "--claim", str(entry.subject)])
+    assert run.exit_code == 1 and "(threshold 6.000000000000001)" in run.output, run.output
+    run = CliRunner().invoke(main, ["verify", str(probe), "--gallery", str(g), "--claim", str(entry.subject),
+                                    "--threshold", "-100"])
+    assert run.exit_code == 0 and "(threshold -100)" in run.output, run.output
+    run = CliRunner().invoke(main, ["gallery", str(g), "calibrate", "--jobs", "1"])  # just above the highest
+    printed = re.search(r"verification threshold (\S+) \(", run.output)
+    with GalleryStore(g) as store:
+        assert printed and float(printed[1]) == store.threshold()["value"], run.output
+    assert [threshold_text(t) for t in (6.000000000000001, 6.0, -1.8, 0.5, -2.522, -2.5224)] == \
+        ["6.000000000000001", "6", "-1.8", "0.5", "-2.522", "-2.5224"]
+
+
 def test_a_threshold_needs_impostor_scores_that_vary():
     """One impostor pair, or pairs that all score alike (a fusion's per-probe normalisation over a one-person
     gallery gives 0 to every score), place no threshold: refused, where a threshold just above that one score was
@@ -230,7 +260,7 @@ def test_enrolling_through_the_service_calibrates_its_gallery_as_a_local_calibra
         with GalleryStore(gallery) as store:
             remote = store.threshold()
         assert remote["data"] == OWN_SCANS and remote["scans"] == 9 and remote["entries"] == 9
-        assert f"verification threshold {remote['value']:.4g} (fmr=0.01" in run.output
+        assert f"verification threshold {threshold_text(remote['value'])} (fmr=0.01" in run.output
         probe = records[1].path  # the service verifies with the threshold it recorded
         answer = in_process(url, admin).verify(probe, claim=records[1].subject)
         assert answer["threshold"] == remote["value"]

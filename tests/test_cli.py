@@ -1,3 +1,4 @@
+import re
 from pathlib import Path
 
 import pytest
@@ -74,6 +75,28 @@ def test_a_threshold_that_is_no_number_is_refused(tmp_path):
         r = CliRunner().invoke(main, ["verify", str(probe), "--gallery", str(tmp_path / "g.sqlite"), "--claim", "a",
                                       "--threshold", value])
         assert r.exit_code == 2 and f"--threshold: must be a finite number, not {float(value)}" in r.output, r.output
+
+
+def test_verify_help_names_the_calibrated_threshold_and_every_methods_default():
+    """`verify --help` named only ICP's default threshold (-1.8 mm²): the gallery's calibrated threshold is used,
+    else its method's default, each of the table the code uses."""
+    from facerec3d.gallery.service import DEFAULT_THRESHOLDS
+
+    r = CliRunner().invoke(main, ["verify", "--help"])
+    text = " ".join(r.output.split())
+    assert r.exit_code == 0 and "default: the gallery's calibrated threshold" in text, text
+    said = ", ".join(f"{m} {v!r}{' mm²' if m == 'icp' else ''}" for m, v in DEFAULT_THRESHOLDS.items())
+    assert f"else the method's default: {said};" in text and "fusion 4.0, embedding 0.5, icp -1.8 mm²" in text, text
+
+
+@pytest.mark.parametrize("group", ["gallery", "keys"])
+def test_a_groups_help_names_every_command_it_has(group):
+    """`gallery --help` named "list, remove ID, stats" but not calibrate and rekey."""
+    r = CliRunner().invoke(main, [group, "--help"])
+    intro = " ".join(r.output.split("Options:")[0].split())
+    assert r.exit_code == 0 and main.commands[group].commands, r.output
+    for name in main.commands[group].commands:
+        assert re.search(rf"[:,] {name}[,.]", intro), (name, intro)
 
 
 @pytest.mark.parametrize("option, value, said", [

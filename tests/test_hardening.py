@@ -715,6 +715,35 @@ def test_cli_settings_errors_are_one_line_and_bugs_are_not_disguised(data, tmp_p
     assert isinstance(r.exception, ZeroDivisionError) and r.exit_code == 1
 
 
+def test_a_method_config_without_method_is_the_existing_gallerys_methods_settings(data, tmp_path, monkeypatch):
+    """`enroll --method-config p2p.toml` without --method on an icp gallery read the file as the default method's
+    (fusion's: "unknown FusionConfig settings: variant"), and `serve` ignored it: it is the gallery's own method's
+    settings, refused as they differ from the stored options, as with --method icp."""
+    store = tmp_path / "gi.sqlite"
+    assert enroll(data["scans"][:1], data, store, "--no-calibrate").exit_code == 0
+    p2p = tmp_path / "p2p.toml"
+    p2p.write_text('variant = "point-to-plane"\n')
+    common = ["--gallery", str(store), "--jobs", "1", "--cache", str(data["cache"]), "--method-config", str(p2p)]
+    for more in ([], ["--method", "icp"]):
+        r = CliRunner().invoke(main, ["enroll", str(data["scans"][2]), *common, *more])
+        assert r.exit_code == 2 and "the gallery was enrolled with method 'icp' and options" in r.output \
+            and "FusionConfig" not in r.output and "'variant': 'point-to-plane'" in r.output, r.output
+    same = tmp_path / "p2p-same.toml"  # the stored settings themselves are taken
+    same.write_text('variant = "point-to-point"\n')
+    r = CliRunner().invoke(main, ["enroll", str(data["scans"][2]), *common[:-1], str(same), "--no-calibrate"])
+    assert r.exit_code == 0 and "1 enrolled" in r.output, r.output
+    import facerec3d.server.app
+
+    def run(gallery, keys, host, port, jobs, scheduler, method, options, *rest, **kw):  # the service's own check
+        with GalleryStore(gallery) as st:
+            st.check_matcher(make_matcher(method, options))
+
+    monkeypatch.setattr(facerec3d.server.app, "serve", run)
+    r = CliRunner().invoke(main, ["serve", "--gallery", str(store), "--keys", str(tmp_path / "k.json"),
+                                  "--method-config", str(p2p)])
+    assert r.exit_code == 2 and "the gallery was enrolled with method 'icp' and options" in r.output, r.output
+
+
 # ---------------------------------------------------------------- 5. exit codes
 def test_enroll_and_preprocess_fail_when_nothing_succeeded(data, tmp_path):
     bad2 = tmp_path / "broken2.abs"

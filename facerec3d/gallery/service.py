@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from os import PathLike
 from pathlib import Path
 
+from facerec3d.config import DEFAULT_THRESHOLDS
 from facerec3d.datasets.catalog import (Dataset, DatasetError, ScanRecord, manifest_record, open_dataset,
                                         scan_record)
 from facerec3d.datasets.protocols import split
@@ -29,19 +30,6 @@ from facerec3d.matching.base import Matcher, Template, check_k, check_threshold
 from facerec3d.preprocess.batch import preprocess_file, printable
 from facerec3d.preprocess.pipeline import PreprocessConfig
 from facerec3d.scan import FaceScan
-
-#: Default verification thresholds (score = similarity) by method, used only where the gallery has no calibrated
-#: threshold (`facerec3d gallery G calibrate`, evaluation.calibrate): ICP's plane-capped −MSE (mm², `plane_cap_mm`)
-#: at the equal error rate of the synthetic test60 protocol (0.7 mm laser-like scans: −1.81; real Kinect v2 frames
-#: need about −3.7, so calibrate; the book's −MSE of the kept pairs had −1.0 and −5.9).
-DEFAULT_THRESHOLDS: dict[str, float] = {"icp": -1.8, "fusion": 4.0, "embedding": 0.5}
-#   fusion (the default members icp, region-icp and embedding: z-scores summed, per probe over the gallery): 4.0 is
-#   near its threshold at FMR 1 % on real Kinect v2 frames (rap3df-2019, an 80-person gallery: 4.82, 4.41 with the
-#   book's ICP score) and among those of the 15-person synthetic sets (3.8–6.5; so few impostor pairs that one moves
-#   it): a cohort-normalised score depends on the sensor less than ICP's (at FMR 1 %: −1.5 mm² on laser scans, −2.6 on
-#   the real Kinect frames), but it grows with the gallery's size. Galleries still calibrate their own.
-#   embedding (cosine of the shipped model's embeddings): 0.5 lies between its FMR-1 % thresholds on synthetic
-#   scans (about 0.4) and on the real Kinect frames (0.62, where real faces crowd together): calibrate.
 
 
 def gallery_threshold(store: GalleryStore, method: str) -> float:

@@ -312,6 +312,9 @@ MIN_EXTENT_MM = 50.0  # the least a face spans (mm, the longest side of its boun
 MAX_EXTENT_MM = 50_000.0  # the most a scene with a face spans (mm): depth cameras see 5-10 m. The detector's head
 #   search bins the scene in 25 mm cells (`crown_heights`): a face read in the wrong unit (×1000: 200 m) made that
 #   grid take 7.6 GB; at 50 m it takes 32 MB
+MAX_FACE_DISTANCE_MM = 5_000.0  # the farthest a depth camera sees a face (mm): the Kinect v2 reads to 4.5 m, and
+#   at 5 m its pixel spans 14 mm (fx 365 px), a face ~11 pixels across with the nose in one or two; a face read
+#   at 10 times its depth (a frame of 0.1 mm units read as mm, a cloud scaled ×10) lies 5-15 m away
 
 
 def check_points(scan: FaceScan) -> None:
@@ -340,12 +343,31 @@ def detect_face(scan: FaceScan, config: DetectConfig = DetectConfig()) -> Detect
     check_points(scan)
     if scan.grid is None:
         raise ValueError("face detection needs a range-image grid (see preprocess.gridify)")
-    if config.proposer:
-        try:
-            return _detect_face(scan, config)
-        except FailureToAcquire:
-            config = replace(config, proposer="")
-    return _detect_face(scan, config)
+    try:
+        if config.proposer:
+            try:
+                return _detect_face(scan, config)
+            except FailureToAcquire:
+                config = replace(config, proposer="")
+        return _detect_face(scan, config)
+    except FailureToAcquire as e:
+        if hint := too_far(scan):
+            raise FailureToAcquire(f"{e.reason}; {hint}", e.path) from None
+        raise
+
+
+def too_far(scan: FaceScan) -> str | None:
+    """For a scan with no face found: when its nearest point lies beyond MAX_FACE_DISTANCE_MM of the camera (the
+    origin of a depth frame's points and of a cloud in camera coordinates), that its depth likely reads too large
+    (a depth image of 0.1 mm units read as millimetres, a cloud scaled ×10); else None. A cloud or mesh whose
+    origin is not its camera has points near the origin, and gets no hint."""
+    nearest = float(np.sqrt(np.min(np.einsum("ij,ij->i", scan.points, scan.points))))
+    if not nearest > MAX_FACE_DISTANCE_MM:
+        return None
+    return (f"its nearest point is {nearest / 1000:.3g} m from the camera, beyond where a depth camera sees a face "
+            f"(~{MAX_FACE_DISTANCE_MM / 1000:g} m): is its depth 10 times too large? facerec3d reads millimetres (a "
+            "depth image needs its depth scale in the intrinsics, e.g. depth_unit_mm 0.1 for 0.1 mm units; a mesh "
+            "or point cloud, scaling)")
 
 
 def _detect_face(scan: FaceScan, config: DetectConfig) -> Detection:
@@ -399,12 +421,11 @@ def _detect_face(scan: FaceScan, config: DetectConfig) -> Detection:
         if fit.inlier_fraction < config.min_inliers:
             why = f"the face model does not fit ({fit.inlier_fraction:.0%} of points)"
         elif protrusion < config.min_protrusion_mm:
-            why = (f"no face-shaped surface: nothing protrudes at the fitted nose (tip "
-                   f"{short_of(protrusion, config.min_protrusion_mm)} mm above its surroundings, a nose needs "
-                   f"{config.min_protrusion_mm:g})")
+            why = ("no face-shaped surface: nothing protrudes at the fitted nose "
+                   f"({tip_above(protrusion, config.min_protrusion_mm, 'its surroundings')})")
         elif dome < config.min_dome_mm:
-            why = (f"no face-shaped surface: a rounded surface, no nose (tip {short_of(dome, config.min_dome_mm)} mm "
-                   f"above the dome around it, a nose needs {config.min_dome_mm:g})")
+            why = ("no face-shaped surface: a rounded surface, no nose "
+                   f"({tip_above(dome, config.min_dome_mm, 'the dome around it')})")
         else:
             why = f"no face-shaped surface: the camera saw only {seen:.0%} of where the fitted face would be"
         raise FailureToAcquire(why, scan.meta.path)
@@ -750,6 +771,15 @@ def nose_heights(points: np.ndarray, fit: ModelFit, config: DetectConfig = Detec
     design = lambda q: np.c_[np.ones(len(q)), q[:, :2], (q[:, :2] ** 2).sum(axis=1)]  # z = a + b x + c y + κ r²
     coef = np.linalg.lstsq(design(ring), ring[:, 2], rcond=None)[0]
     return plane, float(np.percentile(tip[:, 2] - design(tip) @ coef, 90))
+
+
+def tip_above(height: float, need: float, around: str) -> str:
+    """How far a `nose_heights` height falls short of `need` (mm) above `around`, for a failure's reason: without a
+    height (−inf: no scanned surface at the tip, or too little around it), that there was nothing to measure."""
+    if not np.isfinite(height):
+        return f"no height to measure: too little scanned surface at the tip or around it; a nose needs {need:g} mm " \
+               f"above {around}"
+    return f"tip {short_of(height, need)} mm above {around}, a nose needs {need:g}"
 
 
 def is_nose(heights: tuple[float, float], config: DetectConfig = DetectConfig()) -> bool:
