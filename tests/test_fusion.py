@@ -140,6 +140,29 @@ def test_fusion_matcher_combines_members(tmp_path, faces):
     np.testing.assert_allclose(back.scores(probes[3], templates)[0], fused)
 
 
+def test_fusion_matcher_passes_its_top_to_the_borda_rule(faces):
+    # borda with top = 1: only each member's best template gets a point, so the fused scores are the members'
+    # votes for their best template (computed here from the members' own scores), not full Borda counts
+    gallery, probes = faces
+    m = FusionMatcher(FusionConfig(members=("icp", "region-icp"), rule="borda", top=1))
+    templates = [m.enroll(g) for g in gallery]
+    raw = np.stack([member.scores(probes[2], [unpack(t)[k] for t in templates])[0]
+                    for k, member in enumerate(m.members)])
+    expected = np.zeros(len(gallery))
+    for row in raw:
+        expected[np.argmax(row)] += 1.0
+    fused, _ = m.scores(probes[2], templates)
+    np.testing.assert_allclose(fused, expected)
+    assert fused.sum() == 2.0
+
+
+def test_fusion_needs_training_when_any_member_does():
+    m = FusionMatcher(FusionConfig(members=("icp", "pca")))
+    assert m.members[1].needs_training and not m.members[0].needs_training
+    assert m.needs_training and m.learners() == ["pca"]
+    assert not FusionMatcher(FusionConfig(members=("icp", "region-icp"))).needs_training
+
+
 def test_fusion_config_is_checked():
     with pytest.raises(ValueError):
         FusionConfig(members=("icp",), rule="product", normalisation="z-score")
