@@ -327,3 +327,26 @@ def test_a_gallery_normalised_method_calibrates_its_impostor_pairs_as_strangers_
                 claims += 1
                 accepted += verify_scan(store, r.path, claim=claim, threshold=threshold, cache=cache)[0]
     assert claims == 30 and accepted <= 3, f"{accepted} of {claims} strangers' claims accepted at {threshold:.3f}"
+
+
+def test_a_threshold_record_by_hand_at_an_fmr_and_at_the_eer():
+    """The record's figures are those of its threshold, accepting score >= value: genuine .9 .8 .4, impostor .7 .3
+    .2 .1 (test_metrics' ROC by hand). At FMR 25 %: one impostor of four accepted, the threshold is .7 and accepts
+    it (FMR .25, TAR 2/3). At the EER (.25, crossed between t = .7 and t = .4, nearer .7) the threshold is .7."""
+    genuine, impostor = np.array([0.9, 0.8, 0.4]), np.array([0.7, 0.3, 0.2, 0.1])
+    at_fmr = threshold_record(genuine, impostor, 0.25, scans=7, failed=0, data="x", entries=7)
+    assert at_fmr["value"] == 0.7 and at_fmr["rule"] == "fmr=0.25"
+    assert at_fmr["fmr"] == 0.25 and at_fmr["tar"] == pytest.approx(2 / 3) and at_fmr["eer"] == pytest.approx(0.25)
+    at_eer = threshold_record(genuine, impostor, None, scans=7, failed=0, data="x", entries=7)
+    assert at_eer["value"] == 0.7 and at_eer["rule"] == "eer"
+    assert at_eer["fmr"] == 0.25 and at_eer["tar"] == pytest.approx(2 / 3)
+
+
+def test_a_calibration_selection_is_even_and_keeps_the_first_and_last_scans():
+    from facerec3d.evaluation.calibrate import calibration_selection
+
+    records = list(range(250))
+    chosen = calibration_selection(records, 100)
+    assert len(chosen) == 100 and chosen[0] == 0 and chosen[-1] == 249 and len(set(chosen)) == 100
+    assert max(np.diff(chosen)) - min(np.diff(chosen)) <= 1  # evenly spread
+    assert calibration_selection(records[:100], 100) == records[:100]

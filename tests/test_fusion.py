@@ -68,6 +68,37 @@ def test_borda_and_consensus():
     np.testing.assert_allclose(tiebreak, [2.0, 1.0, 3.0])  # the Borda count prefers t2
 
 
+def test_hampel_location_is_the_root_of_the_hampel_estimating_equation():
+    # Every part of Hampel's ψ is used: knees a = 6.6, b = 10.2, c = 34 (70/85/95 % of |x − 6.5|); at μ ≈ 6.1,
+    # 0..9 are within a (ψ = d), 14 and 16 between a and b (ψ = ±a), 30 between b and c (descending), 60 beyond c.
+    # Reference: the root of Σ ψ(x − μ) = 0 found by bisection (brentq), σ the ψ(d)/d-weighted RMS deviation.
+    from scipy.optimize import brentq
+
+    x = np.array([0.0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 14, 16, 30, 60])
+    a, b, c = np.quantile(np.abs(x - np.median(x)), (0.7, 0.85, 0.95))
+
+    def psi(d):
+        ad = np.abs(d)
+        return np.sign(d) * np.where(ad <= a, ad, np.where(ad <= b, a, np.where(ad <= c, a * (c - ad) / (c - b), 0)))
+
+    mu_ref = brentq(lambda m: psi(x - m).sum(), 0.0, 12.0)
+    w = psi(x - mu_ref) / (x - mu_ref)
+    sd_ref = np.sqrt(np.sum(w * (x - mu_ref) ** 2) / w.sum())
+    mu, sd = hampel_location_scale(x)
+    assert mu == pytest.approx(mu_ref, abs=1e-4) and sd == pytest.approx(sd_ref, abs=1e-4)
+    assert abs(mu - x.mean()) > 5  # far from the mean the outliers pull up
+
+
+def test_borda_and_consensus_rank_a_score_not_made_last():
+    # a source that could not score a template (NaN: the member failed on it) gives it the fewest points, and the
+    # other templates keep their points: one source ranks t0, t2, t1(NaN) -> points 2, 0, 1
+    np.testing.assert_allclose(borda([[0.9, np.nan, 0.1]]), [2.0, 0.0, 1.0])
+    np.testing.assert_allclose(borda([[0.9, np.nan, 0.1], [0.2, 0.3, 0.1]]), [3.0, 2.0, 1.0])
+    votes, tiebreak = fuse(np.array([[np.nan, 0.5, 0.1], [0.2, 0.3, 0.1]]), "consensus")
+    np.testing.assert_allclose(votes, [0.0, 2.0, 0.0])
+    np.testing.assert_allclose(tiebreak, [1.0, 4.0, 1.0])  # t0: 0 + 1, t1: 2 + 2, t2: 1 + 0
+
+
 def test_pack_unpack():
     a = Template("s1", "x", "icp", {"points": np.zeros((2, 3)), "n": np.arange(3)}, {"k": 1})
     b = Template("s1", "x", "pca", {"points": np.ones(4)}, {"k": 2})
@@ -107,6 +138,29 @@ def test_fusion_matcher_combines_members(tmp_path, faces):
     back = load_matcher(tmp_path / "model.npz")
     assert isinstance(back, FusionMatcher) and back.config == m.config and back.options() == m.options()
     np.testing.assert_allclose(back.scores(probes[3], templates)[0], fused)
+
+
+def test_fusion_matcher_passes_its_top_to_the_borda_rule(faces):
+    # borda with top = 1: only each member's best template gets a point, so the fused scores are the members'
+    # votes for their best template (computed here from the members' own scores), not full Borda counts
+    gallery, probes = faces
+    m = FusionMatcher(FusionConfig(members=("icp", "region-icp"), rule="borda", top=1))
+    templates = [m.enroll(g) for g in gallery]
+    raw = np.stack([member.scores(probes[2], [unpack(t)[k] for t in templates])[0]
+                    for k, member in enumerate(m.members)])
+    expected = np.zeros(len(gallery))
+    for row in raw:
+        expected[np.argmax(row)] += 1.0
+    fused, _ = m.scores(probes[2], templates)
+    np.testing.assert_allclose(fused, expected)
+    assert fused.sum() == 2.0
+
+
+def test_fusion_needs_training_when_any_member_does():
+    m = FusionMatcher(FusionConfig(members=("icp", "pca")))
+    assert m.members[1].needs_training and not m.members[0].needs_training
+    assert m.needs_training and m.learners() == ["pca"]
+    assert not FusionMatcher(FusionConfig(members=("icp", "region-icp"))).needs_training
 
 
 def test_fusion_config_is_checked():

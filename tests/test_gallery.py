@@ -382,3 +382,92 @@ def test_processes_forked_from_a_service_do_not_keep_its_store_held(tmp_path):
     finally:
         worker.kill()
         worker.join()
+
+
+# ---------------------------------------------------------------- store rules that mutation testing found untested
+def small_template(i: int, subject: str | None = None, scan_id: str | None = None) -> Template:
+    return Template(subject or f"s{i}", scan_id or f"scan{i}", "arrays", {"points": np.full((4, 3), float(i))},
+                    {"i": i})
+
+
+@pytest.fixture
+def small_store(tmp_path, monkeypatch):
+    monkeypatch.delenv("FACEREC3D_GALLERY_KEY", raising=False)
+    monkeypatch.delenv("FACEREC3D_GALLERY_KEY_FILE", raising=False)
+    path = tmp_path / "g.sqlite"
+    with GalleryStore(path, create=True) as store:
+        store.bind(PreprocessConfig(), ArraysMatcher(ICPConfig(fine_points=800)))
+        yield store
+
+
+def test_a_store_refuses_the_same_method_with_other_options(small_store):
+    small_store.add(small_template(0), "/data/0.abs")
+    with pytest.raises(GalleryError, match="enrolled with method 'arrays' and options"):
+        small_store.bind(PreprocessConfig(), ArraysMatcher(ICPConfig(fine_points=900)))
+    with pytest.raises(GalleryError, match="enrolled with method 'arrays' and options"):
+        small_store.check_matcher(ArraysMatcher(ICPConfig(fine_points=900)))
+    small_store.check_matcher(ArraysMatcher(ICPConfig(fine_points=800)))  # its own options: accepted
+
+
+def test_a_failure_to_enrol_keeps_the_latest_reason_once(small_store):
+    small_store.add_failure("/data/bad.abs", "cannot read")
+    small_store.add_failure("/data/bad.abs", "no face found")
+    assert small_store.failures() == [("/data/bad.abs", "no face found")]
+    assert small_store.stats()["failures_to_enrol"] == 1
+
+
+def test_a_threshold_is_a_finite_float_when_set_and_when_read(small_store):
+    for value in (float("nan"), float("inf"), -float("inf"), 1, "1.0", None):
+        with pytest.raises(ValueError, match="finite float"):
+            small_store.set_threshold({"value": value, "rule": "eer"})
+    assert small_store.threshold() is None
+    small_store.set_threshold({"value": -1.5, "rule": "eer"})
+    assert small_store.threshold() == {"value": -1.5, "rule": "eer"}
+    db = sqlite3.connect(small_store.path, isolation_level=None)
+    for damaged in ('{"value": Infinity, "rule": "eer"}', '{"value": NaN}', '{"rule": "eer"}', "not json"):
+        db.execute("UPDATE meta SET value = ? WHERE key = 'threshold'", (damaged,))
+        with pytest.raises(GalleryError, match="damaged threshold record"):
+            small_store.threshold()
+    db.close()
+
+
+def test_a_scan_id_of_two_people_is_refused_and_a_subject_name_comes_before_a_scan_id(small_store):
+    small_store.add(small_template(0, "ann", "front_1"), "/data/ann/front_1.png")
+    small_store.add(small_template(1, "bob", "front_1"), "/data/bob/front_1.png")
+    with pytest.raises(GalleryError, match="scan 'front_1' names 2 entries of 2 subjects"):
+        small_store.remove("front_1")
+    assert [e.subject for e in small_store.entries()] == ["ann", "bob"]
+    # "bob" is a subject and also the scan id of one of ann's entries: the subject is meant
+    small_store.add(small_template(2, "ann", "bob"), "/data/ann/bob.png")
+    assert small_store.remove("bob") == 1
+    assert [(e.subject, e.scan_id) for e in small_store.entries()] == [("ann", "front_1"), ("ann", "bob")]
+
+
+def test_an_entry_whose_subject_was_changed_in_the_file_is_refused_not_matched(small_store):
+    small_store.add(small_template(0, "ann"), "/data/0.abs")
+    small_store.add(small_template(1, "bob"), "/data/1.abs")
+    db = sqlite3.connect(small_store.path, isolation_level=None)
+    db.execute("UPDATE entries SET subject = 'bob' WHERE subject = 'ann'")  # someone makes ann's face bob's
+    db.close()
+    with pytest.raises(GalleryError, match=r"entry \d+ \(subject bob, scan scan0.*damaged: entry: checksum"):
+        small_store.templates()
+
+
+def test_a_rekey_that_fails_midway_changes_nothing(small_store):
+    """rekey is one transaction: a damaged row found after others were re-encrypted rolls them all back, so the
+    store stays clear and readable without a key (the learnt-array table is re-encrypted last)."""
+    pytest.importorskip("cryptography")
+    from facerec3d.gallery.store import TemplateKey
+
+    for i in range(3):
+        small_store.add(small_template(i), f"/data/{i}.abs")
+    db = sqlite3.connect(small_store.path, isolation_level=None)
+    db.execute("INSERT INTO model_arrays VALUES ('w', '<f8', '[1]', ?, 'bad checksum')", (b"\0" * 8,))
+    db.close()
+    with pytest.raises(GalleryError, match="model_arrays row None 'w' is damaged"):
+        small_store.rekey(TemplateKey(b"k" * 32))
+    assert small_store.key is None
+    with GalleryStore(small_store.path) as again:
+        assert not again.encrypted
+        for i, t in enumerate(again.templates()):
+            np.testing.assert_array_equal(t.arrays["points"], small_template(i).arrays["points"])

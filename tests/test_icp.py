@@ -398,3 +398,24 @@ def test_plane_cap_config_checks():
     with pytest.raises(ValueError):
         ICPConfig(score_cap=2.0)  # each replaces the score
     ICPConfig(score_cap=2.0, plane_cap_mm=0.0)
+
+
+def test_min_overlap_makes_a_probe_that_pairs_too_few_points_no_match(mesh):
+    """min_overlap: fewer final pairs than that share of the fine probe points is no match (MSE inf, score −inf),
+    whatever the fit of the few pairs. A gallery that is only the face's right edge pairs a known share of a whole-face
+    probe; the rule is checked either side of that share."""
+    gallery = grid_scan(mesh)
+    gallery = gallery.subset(gallery.points[:, 0] > 25.0)
+    probe = random_points(mesh, 1.0, np.random.default_rng(2))
+    base = ICPConfig(min_overlap=0.0, max_normal_angle=None)
+    index = GalleryIndex.from_scan(gallery, base)
+    free = icp(probe, index, base)
+    n_fine = min(base.fine_points, len(probe))
+    share = free.n_correspondences / n_fine
+    assert np.isfinite(free.mse) and 0.05 < share < 0.5, share  # an edge strip: some pairs, not most
+    below = icp(probe, index, dataclasses.replace(base, min_overlap=share - 0.02))
+    above = icp(probe, index, dataclasses.replace(base, min_overlap=share + 0.02))
+    assert below.n_correspondences == above.n_correspondences == free.n_correspondences
+    assert below.mse == free.mse and above.mse == np.inf
+    strict = ICPMatcher(dataclasses.replace(base, min_overlap=share + 0.02))
+    assert strict.score(FaceScan(probe), strict.enroll(gallery)) == -np.inf

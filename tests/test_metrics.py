@@ -446,3 +446,51 @@ def test_csv_score_file_with_an_empty_id_is_named_by_line(tmp_path):
         result = CliRunner().invoke(main, args)
         assert result.exit_code == 2 and result.output == f"error: {tmp_path / 'c7.csv'}:4: the bio_ref_subject_id " \
                                                           "field is empty\n"
+
+
+def test_a_probe_of_a_subject_not_enrolled_is_a_non_mated_search_by_its_best_score_whichever_subject_gives_it():
+    # x is not in the gallery: every subject is a non-mated candidate, the last one in name order included
+    # (x sorts after c, z between a and b: the subject it would be filed under must not be skipped).
+    from facerec3d.evaluation.metrics import search
+
+    S = [[0.1, 0.2, 0.9], [0.1, 0.8, 0.3], [0.9, 0.5, 0.1]]
+    s = search(S, ["x", "ab", "a"], ["a", "b", "c"])
+    np.testing.assert_array_equal(s.ranked, [False, False, True])
+    np.testing.assert_allclose(s.nonmated, [0.9, 0.8, 0.5])  # max over every subject; a's own .9 left out
+    # open set by hand: non-mated .9 .8 .5, one mated search (a, rank 1, .9): at t = .9 FPIR 1/3, FNIR 0
+    fpir, fnir, thr = open_set(S, ["x", "ab", "a"], ["a", "b", "c"])
+    np.testing.assert_array_equal(thr, [np.inf, 0.9, 0.8, 0.5])
+    np.testing.assert_allclose(fpir, [0, 1 / 3, 2 / 3, 1])
+    np.testing.assert_allclose(fnir, [1, 0, 0, 0])
+
+
+def test_threshold_at_far_is_the_highest_threshold_reaching_the_rate():
+    # one genuine score 10; 100 impostors: one at 9, the others at 0, -1, ..., -98. FMR <= 1 % allows one impostor,
+    # but TAR is already 1 at t = 10 (FMR 0): the threshold at FMR 1 % is 10, and it accepts no impostor.
+    impostors = np.r_[9.0, -np.arange(99.0)]
+    S = np.r_[10.0, impostors][None, :]
+    m = summarize(S, ["a"], ["a", *(f"i{k}" for k in range(100))], identification=False)
+    assert m["vr_at_far_0.01"] == 1.0 and m["threshold_at_far_0.01"] == 10.0
+    assert (impostors >= m["threshold_at_far_0.01"]).sum() == 0
+    assert m["vr_at_far_0.001"] == 1.0 and m["threshold_at_far_0.001"] == 10.0
+
+
+def test_det_with_minus_infinity_is_the_det_of_a_score_below_every_finite_one():
+    # -inf (a comparison that could not be aligned) must rank below every finite score, as a very low score does
+    rng = np.random.default_rng(0)
+    genuine, impostor = rng.normal(1, 1, 50), rng.normal(0, 1, 80)
+    genuine[:3], impostor[:5] = -np.inf, -np.inf
+    fmr, fnmr, _ = det(genuine, impostor)
+    low = lambda x: np.where(np.isinf(x), -1e6, x)  # noqa: E731
+    ref_fmr, ref_fnmr, _ = det(low(genuine), low(impostor))
+    np.testing.assert_allclose(fmr, ref_fmr)
+    np.testing.assert_allclose(fnmr, ref_fnmr)
+    # and the same rule against sklearn directly, +inf too
+    from sklearn.metrics import det_curve
+
+    genuine[3] = np.inf
+    y = np.r_[np.ones(50), np.zeros(80)]
+    ref = det_curve(y, np.clip(np.r_[genuine, impostor], -1e6, 1e6))
+    got = det(genuine, impostor)
+    np.testing.assert_allclose(got[0], ref[0])
+    np.testing.assert_allclose(got[1], ref[1])

@@ -182,3 +182,15 @@ def test_a_manifest_label_gives_the_bosphorus_type_of_a_file_of_any_name(tmp_pat
     assert names == {"non-neutral": ["p0_b", "p1_c"], "pose": ["p1_d"], "E": ["p0_b", "p1_c"], "YR": ["p1_d"],
                      "E_HAPPY": ["p0_b"], "E_SURPRISE": ["p1_c"]}
     assert [r.expression for r in ds.records] == ["neutral", "non-neutral", "non-neutral", "neutral", None]
+
+
+def test_bosphorus_subject_without_a_neutral_scan_is_not_enrolled(tmp_path):
+    # the gallery is each subject's first NEUTRAL (N) scan: bs001 has none, so none of its scans is in the gallery
+    # (its probes are searches of a person not enrolled), rather than its first expression or pose scan
+    touch(tmp_path, ["bs000/bs000_N_N_0.bnt", "bs000/bs000_E_HAPPY_0.bnt",
+                     "bs001/bs001_E_ANGER_0.bnt", "bs001/bs001_YR_R30_0.bnt"])
+    ds = open_dataset(tmp_path)
+    sp = split(ds, "bosphorus")
+    assert [ds.records[i].scan_id for i in sp.gallery] == ["bs000_N_N_0"]
+    assert sorted(ds.records[i].scan_id for i in sp.probes) == ["bs000_E_HAPPY_0", "bs001_E_ANGER_0",
+                                                               "bs001_YR_R30_0"]
