@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from facerec3d.datasets.synthetic import FaceScanner, ScanSpec, export_surface, quick_scan, sensor_profile
+from facerec3d.datasets.synthetic import (DatasetConfig, FaceScanner, ScanSpec, export_surface, plan_dataset,
+                                          quick_scan, sensor_profile)
+from facerec3d.geometry.transforms import rotation_from_euler
 from facerec3d.io import load_scan, save_scan
 from facerec3d.matching.registry import make_matcher
 from facerec3d.preprocess import Preprocessor, gridify, landmarks_in_input_frame
@@ -126,3 +128,32 @@ def test_a_kinect_quality_point_cloud_is_not_placed_on_its_cheek(tmp_path):
     scan, nose = _export(syn, 4.0, False, seed=4034, folder=tmp_path)
     face = Preprocessor()(scan)
     assert np.linalg.norm(landmarks_in_input_frame(face)["nose_tip"] - nose) <= 10.0
+
+
+def test_a_point_cloud_moved_anywhere_is_turned_head_up_the_same_way():
+    """A tester's Kinect v2 frame (04203/front_2.png of `facerec3d synth frames --sensor kinect-v2 --format png
+    --subjects 5 --scans 3`) as a point cloud was found upright; moved 1 mm along x, or 10⁶ mm along every axis, it
+    was turned upside down (roll −178° and 169°), passed detection on its chin and matched another person. The
+    upright fit works on the cloud thinned and rasterised on cells of its spacing: `front_points` counted those cells
+    from the frame's origin, so a move changed the points kept and the fit, and Qhull triangulated coordinates
+    10⁶ mm out imprecisely. Now both count from the cloud's own corner: in its camera frame and in random frames,
+    moved by a fraction of a millimetre to 10⁶ mm, the cloud is turned head up alike and its nose found. Range
+    images are never turned."""
+    spec = plan_dataset(DatasetConfig(subjects=1, first_subject=3, scans=2, scanner=sensor_profile("kinect-v2")))[1]
+    syn = FaceScanner(sensor_profile("kinect-v2")).scan(spec)
+    assert orient(syn.scan)[0] is syn.scan  # a depth frame is in its camera's frame: never turned, not even copied
+    head_up = rotation_from_euler(spec.yaw, spec.pitch, spec.roll) @ np.array([0.0, 1.0, 0.0])
+    moves = [np.zeros(3), np.array([0.3, -0.7, 0.2]), np.array([1.0, 0.0, 0.0]), np.array([2.6, 1.9, -3.1]),
+             np.full(3, 1e6)]
+    for seed in (None, 0, 1, 2):  # the camera's frame, then random ones
+        R = np.eye(3) if seed is None else Rotation.random(random_state=seed).as_matrix()
+        rolls = []
+        for t in moves:
+            cloud = export_surface(syn.scan, syn.scan.resolution(), mesh=False, rotation=R, translation=t)
+            _, how = orient(cloud)
+            up = how.R @ R @ head_up  # the head's vertical axis after the turn
+            rolls.append(np.degrees(np.arctan2(up[0], up[1])))
+        assert np.abs(rolls).max() < 5.0 and np.ptp(rolls) < 1.0, (seed, np.round(rolls, 1))
+        face = Preprocessor()(cloud)  # the farthest move
+        error = np.linalg.norm(landmarks_in_input_frame(face)["nose_tip"] - (R @ syn.landmarks["nose_tip"] + t))
+        assert error <= 10.0, (seed, error)
