@@ -240,7 +240,8 @@ def test_jobs_are_capped_at_what_is_useful(tmp_path, monkeypatch):
     assert r.output.count(f"warning: --jobs 100000: using {2 * JOBS_PER_CORE} processes") == 1, r.output
     assert "Too many open files" not in r.output
     for order in (["--jobs", "100000", "--scheduler", "bad://x"], ["--scheduler", "bad://x", "--jobs", "100000"]):
-        r = CliRunner().invoke(main, ["evaluate", str(tmp_path / "d"), "--out", str(tmp_path / "e"), *order])
+        r = CliRunner().invoke(main, ["evaluate", str(tmp_path / "d"), "--out", str(tmp_path / "e"), *order,
+                                      "--cache", str(tmp_path / "c")])  # (no first-use line of the default cache)
         assert r.exit_code == 2 and "warning: --jobs" not in r.output, r.output  # a cluster's workers: no local cap
         assert r.output.startswith("error: scheduler 'bad://x'") or "dask.distributed" in r.output, r.output
 
