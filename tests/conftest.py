@@ -4,14 +4,28 @@ Test modules import the helpers from here (`from tests.conftest import model_fac
 Tests that take minutes are marked `slow` (run by default; `-m "not slow"` leaves them out).
 """
 
+import atexit
+import os
+import shutil
+import tempfile
 from pathlib import Path
 from typing import NamedTuple
 
-import numpy as np
-import pytest
+# The tests never write the user's caches (~/.cache/facerec3d's preprocessed faces, matplotlib's fonts): each test
+# process has its own cache home, set before facerec3d is imported (`preprocess.batch.DEFAULT_CACHE` reads it then),
+# with the preprocessing cache's folder already made, so that no command's output starts with the cache's
+# first-use line (`cli._cache_folder`) in one order of the tests and not in another (in a fresh HOME a test that
+# expected an error line first failed).
+_CACHE_HOME = tempfile.mkdtemp(prefix="facerec3d-tests-")
+os.environ["XDG_CACHE_HOME"] = _CACHE_HOME
+(Path(_CACHE_HOME) / "facerec3d" / "preprocessed").mkdir(parents=True)
+atexit.register(shutil.rmtree, _CACHE_HOME, ignore_errors=True)
 
-from facerec3d import FaceScan
-from facerec3d.datasets.frontal import CROP_MM, frontal_face
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from facerec3d import FaceScan  # noqa: E402
+from facerec3d.datasets.frontal import CROP_MM, frontal_face  # noqa: E402
 
 
 def cap_image(rows: int = 12, cols: int = 16, invalid=((0, 0), (5, 7), (11, 15)), seed: int = 1) -> FaceScan:
