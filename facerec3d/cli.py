@@ -924,7 +924,8 @@ def verify(probe, gallery, claim, threshold, config_file, cache, intrinsics, ser
     with _one_blas_thread(), GalleryStore(gallery) as store:
         accepted, score, threshold = verify_scan(store, probe, claim, threshold=threshold, config=config,
                                                  cache=_cache_folder(cache), intrinsics=intrinsics)
-        hint = None if given or store.threshold() is not None else _threshold_hint(store, claim, threshold)
+        hint = None if given else (_few_pairs_hint(store.threshold(), gallery) if store.threshold() is not None
+                                   else _threshold_hint(store, claim, threshold))
         if store.stats()["subjects"] < 2 and (matcher := store.matcher()).cohort_scores:
             hint = (f"hint: method {matcher.name!r} normalises each probe's scores over the gallery's people, and "
                     "this gallery holds one: every claim scores 0. Enrol more people, or enrol this one with "
@@ -1075,8 +1076,22 @@ def _threshold_line(r: dict, where) -> str:
     """What a calibration recorded, in one line: the threshold, its rule and pairs, its data and where."""
     extra = f", TAR {r['tar']:.1%} on {r['genuine_pairs']} genuine pairs" if "tar" in r else ""
     failed = f", {r['failed_scans']} of {r['scans']} scans unusable" if r.get("failed_scans") else ""
+    expected = (f", {r['expected_fmr']:.1%} to expect of strangers' claims" if "expected_fmr" in r else "")
     return (f"verification threshold {threshold_text(r['value'])} ({r['rule']}: FMR {r['fmr']:.2%} on "
-            f"{r['impostor_pairs']} impostor pairs{extra}; {r['data']}{failed}) recorded in {where}")
+            f"{r['impostor_pairs']} impostor pairs{expected}{extra}; {r['data']}{failed}) recorded in {where}")
+
+
+def _few_pairs_hint(record: dict | None, where) -> str | None:
+    """A hint when the gallery's calibrated threshold rests on too few impostor pairs for its false-match rate
+    (`evaluation.calibrate.too_few_pairs`): how many strangers' claims to expect through, and what to do."""
+    from facerec3d.evaluation.calibrate import too_few_pairs
+
+    expected = too_few_pairs(record)
+    if expected is None:
+        return None
+    return (f"hint: the gallery's threshold was calibrated on {record.get('impostor_pairs')} impostor pairs, too few "
+            f"for its false-match rate: about {expected:.0%} of strangers' claims are accepted. Calibrate it on "
+            f"scans of more people, enrolled or not: facerec3d gallery {where} calibrate SCANS")
 
 
 @gallery.command("calibrate")
@@ -1137,8 +1152,12 @@ def gallery_stats(store):
                f"file {st['file_bytes'] / 2**20:.1f} MiB; {st['failures_to_enrol']} failures to enrol; "
                f"method {st['method']} {st['options']}")
     if (t := st.get("threshold")) is not None:
-        click.echo(f"verification threshold {threshold_text(t['value'])} ({t['rule']}, {t['data']}, {t['entries']} "
-                   f"entries, {t['calibrated_at']})")
+        from facerec3d.evaluation.calibrate import too_few_pairs
+
+        few = too_few_pairs(t)
+        few = f"; too few impostor pairs: about {few:.0%} of strangers' claims to expect" if few else ""
+        click.echo(f"verification threshold {threshold_text(t['value'])} ({t.get('rule')}, {t.get('data')}, "
+                   f"{t.get('entries')} entries, {t.get('calibrated_at')}{few})")
 
 
 @gallery.command("rekey")

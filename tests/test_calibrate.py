@@ -10,8 +10,8 @@ from click.testing import CliRunner
 from facerec3d.cli import main
 from facerec3d.datasets.synthetic import DatasetConfig, sensor_profile, write_dataset
 from facerec3d.errors import threshold_text
-from facerec3d.evaluation.calibrate import (OWN_SCANS, calibrate, calibration_scores, gallery_records,
-                                            threshold_at_fmr, threshold_record)
+from facerec3d.evaluation.calibrate import (OWN_SCANS, calibrate, calibration_scores, expected_fmr, gallery_records,
+                                            threshold_at_fmr, threshold_record, too_few_pairs)
 from facerec3d.evaluation.metrics import eer, roc
 from facerec3d.gallery.engine import Engine
 from facerec3d.gallery.service import DEFAULT_THRESHOLDS, enroll_scans, gallery_threshold, scan_records, verify_scan
@@ -340,6 +340,56 @@ def test_a_threshold_record_by_hand_at_an_fmr_and_at_the_eer():
     at_eer = threshold_record(genuine, impostor, None, scans=7, failed=0, data="x", entries=7)
     assert at_eer["value"] == 0.7 and at_eer["rule"] == "eer"
     assert at_eer["fmr"] == 0.25 and at_eer["tar"] == pytest.approx(2 / 3)
+
+
+def test_a_threshold_above_every_impostor_pair_admits_one_stranger_in_n_plus_one():
+    """With fewer impostor pairs than 1 / FMR (three people give six), the threshold lies just above the highest
+    of them: none of them passes, but a new stranger's claim is as likely as any of the n to be the highest, so it
+    passes 1 time in n + 1, far above the FMR asked. The record says so, and `too_few_pairs` flags it (measured on
+    synthetic Kinect v2 galleries with the default fusion: 3 people 15 of 108 strangers' claims accepted, 14.3 %
+    expected; 5 people 11 of 180, 4.8 % expected; calibrated on 12 other people's 36 scans, 1 of 108 at 1 %)."""
+    rng = np.random.default_rng(0)
+    for n in (6, 20):
+        draws = rng.normal(size=(20000, n + 1))  # n calibration pairs and one new stranger's claim, per trial
+        t = np.array([threshold_at_fmr(d[:n], 0.01) for d in draws])
+        assert np.mean(draws[:, n] >= t) == pytest.approx(expected_fmr(n), abs=0.01)
+        record = threshold_record(np.zeros(0), draws[0, :n], 0.01, scans=3, failed=0, data="x", entries=3)
+        assert record["fmr"] == 0 and record["asked_fmr"] == 0.01
+        assert record["expected_fmr"] == expected_fmr(n) == too_few_pairs(record)
+    enough = threshold_record(np.zeros(0), rng.normal(size=200), 0.01, scans=20, failed=0, data="x", entries=20)
+    assert "expected_fmr" not in enough and too_few_pairs(enough) is None
+    near = threshold_record(np.zeros(0), rng.normal(size=90), 0.01, scans=10, failed=0, data="x", entries=10)
+    assert near["expected_fmr"] == pytest.approx(1 / 91) and too_few_pairs(near) is None  # within twice the FMR
+    for damaged in (None, {}, {"expected_fmr": "0.2", "asked_fmr": 0.01}, {"expected_fmr": 0.2}, {
+            "expected_fmr": True, "asked_fmr": 0.01}, {"expected_fmr": float("nan"), "asked_fmr": 0.01}):
+        assert too_few_pairs(damaged) is None
+
+
+def test_verify_says_when_a_small_gallerys_threshold_lets_strangers_through(kinect, tmp_path):
+    """A gallery of five people calibrated on its own scans (20 impostor pairs) at FMR 1 %: verify and stats say
+    that about 1 stranger's claim in 21 passes and how to calibrate on more; a threshold given by hand, or one
+    calibrated on enough pairs, gives no such hint."""
+    firsts = {}
+    for r in scan_records([kinect]):
+        firsts.setdefault(r.subject, r)
+    g = tmp_path / "five.sqlite"
+    run = CliRunner().invoke(main, ["enroll", *[str(r.path) for r in firsts.values()], "--gallery", str(g),
+                                    "--method", "icp", "--jobs", "1"])
+    assert run.exit_code == 0 and "4.8% to expect of strangers' claims" in run.output, run.output
+    claim = next(iter(firsts))
+    probe = next(r for r in scan_records([kinect]) if r.subject == claim and r.path != firsts[claim].path)
+    run = CliRunner().invoke(main, ["verify", str(probe.path), "--gallery", str(g), "--claim", claim])
+    assert "calibrated on 20 impostor pairs" in run.output and "about 5% of strangers' claims" in run.output
+    assert f"facerec3d gallery {g} calibrate SCANS" in run.output, run.output
+    stats = CliRunner().invoke(main, ["gallery", str(g), "stats"])
+    assert "about 5% of strangers' claims to expect" in stats.output, stats.output
+    run = CliRunner().invoke(main, ["verify", str(probe.path), "--gallery", str(g), "--claim", claim,
+                                    "--threshold", "-3"])
+    assert run.exit_code in (0, 1) and "hint" not in run.output, run.output
+    run = CliRunner().invoke(main, ["gallery", str(g), "calibrate", "--fmr", "0.05", "--jobs", "1"])  # 20 pairs do
+    assert run.exit_code == 0 and "to expect" not in run.output, run.output
+    run = CliRunner().invoke(main, ["verify", str(probe.path), "--gallery", str(g), "--claim", claim])
+    assert run.exit_code in (0, 1) and "hint" not in run.output, run.output
 
 
 def test_a_calibration_selection_is_even_and_keeps_the_first_and_last_scans():

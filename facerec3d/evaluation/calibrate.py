@@ -16,7 +16,8 @@ gallery (`server.live.LiveGallery.calibration_scores`), with the rule of `thresh
 
 With one scan per subject, as galleries usually are, only impostor pairs exist: the threshold at an FMR needs
 nothing else (the score above which `fmr` of the impostor comparisons lie; with fewer than 1 / `fmr` pairs, as
-a gallery of ten people has, just above the highest of them, which the record says); the equal error rate needs
+a gallery of ten people has, just above the highest of them, which the record says, with the false-match rate to
+expect of it: `expected_fmr`, 1 in n + 1, which scans of other people, enrolled or not, bring down); the equal error rate needs
 genuine pairs too, i.e. a second scan of some subjects (`facerec3d gallery G calibrate MORE_SCANS`).
 """
 
@@ -143,6 +144,25 @@ def calibrate(store: GalleryStore, records: Sequence[ScanRecord] | None = None, 
     return record
 
 
+def expected_fmr(impostor_pairs: int) -> float:
+    """The false-match rate to expect of a threshold just above the highest of `impostor_pairs` impostor scores
+    (what `threshold_at_fmr` gives when there are fewer than 1 / fmr of them): a stranger's claim is as likely as
+    any of those pairs to be the highest of them all, so it passes 1 time in n + 1. Six pairs, as three enrolled
+    people give, let about 14 % of strangers' claims through, whatever false-match rate was asked and though none
+    of the six passes (measured: 4 of 21 claims of 7 synthetic strangers against a gallery of 3)."""
+    return 1.0 / (impostor_pairs + 1)
+
+
+def too_few_pairs(record: dict | None) -> float | None:
+    """The false-match rate to expect of a recorded threshold (`threshold_record`) calibrated on too few impostor
+    pairs for the rate asked (`expected_fmr` more than twice it); None when it rests on enough, or the record does
+    not say (records of earlier versions, calibrated at the equal error rate, or damaged)."""
+    expected, asked = (record or {}).get("expected_fmr"), (record or {}).get("asked_fmr")
+    if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and 0 < x <= 1 for x in (expected, asked)):
+        return None
+    return float(expected) if expected > 2 * asked else None
+
+
 def threshold_record(genuine: np.ndarray, impostor: np.ndarray, fmr: float | None, *, scans: int, failed: int,
                      data: str, entries: int) -> dict:
     """The threshold record of calibration scores (what `calibrate` records, and the service for its gallery): the
@@ -175,6 +195,10 @@ def threshold_record(genuine: np.ndarray, impostor: np.ndarray, fmr: float | Non
               "fmr": float(np.mean(impostor >= value)), "impostor_pairs": int(impostor.size),
               "genuine_pairs": int(genuine.size), "scans": scans, "failed_scans": failed, "data": data,
               "entries": entries, "calibrated_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    if fmr is not None:
+        record["asked_fmr"] = float(fmr)
+        if fmr * impostor.size < 1:  # the threshold is the highest impostor's: see `expected_fmr`
+            record["expected_fmr"] = expected_fmr(impostor.size)
     if genuine.size:
         record["tar"] = float(np.mean(genuine >= value))
         record["eer"] = float(_eer(*roc(genuine, impostor)[:2])[0])
