@@ -910,10 +910,13 @@ def verify(probe, gallery, claim, threshold, config_file, cache, intrinsics, ser
         with _edge(server, preprocess_locally), _client(server, api_key) as client:
             answer = client.verify(probe, claim, threshold, preprocess_locally=preprocess_locally,
                                    intrinsics=intrinsics)
+            hint = None if threshold is not None else _few_pairs_hint(_remote_threshold(client), f"--server {server}")
         accepted, score, threshold = answer["accepted"], answer["score"], answer["threshold"]
         score = float("nan") if score is None else score
         click.echo(f"{'accept' if accepted else 'reject'}: claim {claim}, score {score:.4f} "
                    f"(threshold {threshold_text(threshold)})")
+        if hint:
+            click.echo(hint, err=True)
         sys.exit(0 if accepted else 1)
     from facerec3d.gallery.service import verify_scan
     from facerec3d.gallery.store import GalleryStore
@@ -1079,6 +1082,16 @@ def _threshold_line(r: dict, where) -> str:
     expected = (f", {r['expected_fmr']:.1%} to expect of strangers' claims" if "expected_fmr" in r else "")
     return (f"verification threshold {threshold_text(r['value'])} ({r['rule']}: FMR {r['fmr']:.2%} on "
             f"{r['impostor_pairs']} impostor pairs{expected}{extra}; {r['data']}{failed}) recorded in {where}")
+
+
+def _remote_threshold(client) -> dict | None:
+    """The service's calibrated threshold record (its /v1/stats), or None when it has none or cannot say: a hint
+    about it never fails the answer it follows."""
+    try:
+        record = client.stats().get("threshold")
+    except Exception:  # noqa: BLE001 - the decision was made and is printed whatever this says
+        return None
+    return record if isinstance(record, dict) else None
 
 
 def _few_pairs_hint(record: dict | None, where) -> str | None:

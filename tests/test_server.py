@@ -398,6 +398,12 @@ def test_cli_against_the_service(setup):
     assert r.output.splitlines()[1].split()[:2] == ["1", "s30"] and len(r.output.splitlines()) == 3
     r = run.invoke(main, ["verify", str(probe_file(tmp, 30, 3)), "--server", url, "--claim", "s30"])
     assert r.exit_code == 0 and r.output.startswith("accept"), r.output
+    # the enrolment calibrated the service's threshold on its 2 scans against the 4 other people: 8 impostor pairs,
+    # about 1 stranger's claim in 9 accepted, which the answer's hint says (as a local gallery's verify does)
+    assert "calibrated on 8 impostor pairs" in r.output and "about 11% of strangers' claims" in r.output, r.output
+    assert f"facerec3d gallery --server {url} calibrate SCANS" in r.output, r.output
+    r = run.invoke(main, ["verify", str(probe_file(tmp, 30, 3)), "--server", url, "--claim", "s30", "--threshold", "-50"])
+    assert r.exit_code == 0 and "hint" not in r.output, r.output
     r = run.invoke(main, ["verify", str(probe_file(tmp, 30, 3)), "--server", url, "--claim", "s2"])
     assert r.exit_code == 1 and r.output.startswith("reject"), r.output
     r = run.invoke(main, ["gallery", "--server", url, "stats"])
