@@ -927,7 +927,8 @@ def verify(probe, gallery, claim, threshold, config_file, cache, intrinsics, ser
     with _one_blas_thread(), GalleryStore(gallery) as store:
         accepted, score, threshold = verify_scan(store, probe, claim, threshold=threshold, config=config,
                                                  cache=_cache_folder(cache), intrinsics=intrinsics)
-        hint = None if given else (_few_pairs_hint(store.threshold(), gallery) if store.threshold() is not None
+        record = None if given else store.threshold()
+        hint = None if given else (_few_pairs_hint(record, gallery) if record is not None
                                    else _threshold_hint(store, claim, threshold))
         if store.stats()["subjects"] < 2 and (matcher := store.matcher()).cohort_scores:
             hint = (f"hint: method {matcher.name!r} normalises each probe's scores over the gallery's people, and "
