@@ -910,7 +910,8 @@ def verify(probe, gallery, claim, threshold, config_file, cache, intrinsics, ser
         with _edge(server, preprocess_locally), _client(server, api_key) as client:
             answer = client.verify(probe, claim, threshold, preprocess_locally=preprocess_locally,
                                    intrinsics=intrinsics)
-            hint = None if threshold is not None else _few_pairs_hint(_remote_threshold(client), f"--server {server}")
+        expected = answer.get("expected_fmr")
+        hint = _few_pairs_hint(expected, f"--server {server}") if isinstance(expected, (int, float)) else None
         accepted, score, threshold = answer["accepted"], answer["score"], answer["threshold"]
         score = float("nan") if score is None else score
         click.echo(f"{'accept' if accepted else 'reject'}: claim {claim}, score {score:.4f} "
@@ -918,6 +919,7 @@ def verify(probe, gallery, claim, threshold, config_file, cache, intrinsics, ser
         if hint:
             click.echo(hint, err=True)
         sys.exit(0 if accepted else 1)
+    from facerec3d.evaluation.calibrate import too_few_pairs
     from facerec3d.gallery.service import verify_scan
     from facerec3d.gallery.store import GalleryStore
     from facerec3d.preprocess import PreprocessConfig
@@ -928,8 +930,8 @@ def verify(probe, gallery, claim, threshold, config_file, cache, intrinsics, ser
         accepted, score, threshold = verify_scan(store, probe, claim, threshold=threshold, config=config,
                                                  cache=_cache_folder(cache), intrinsics=intrinsics)
         record = None if given else store.threshold()
-        hint = None if given else (_few_pairs_hint(record, gallery) if record is not None
-                                   else _threshold_hint(store, claim, threshold))
+        hint = None if given else (_few_pairs_hint(too_few_pairs(record), gallery, record.get("impostor_pairs"))
+                                   if record is not None else _threshold_hint(store, claim, threshold))
         if store.stats()["subjects"] < 2 and (matcher := store.matcher()).cohort_scores:
             hint = (f"hint: method {matcher.name!r} normalises each probe's scores over the gallery's people, and "
                     "this gallery holds one: every claim scores 0. Enrol more people, or enrol this one with "
@@ -1085,27 +1087,15 @@ def _threshold_line(r: dict, where) -> str:
             f"{r['impostor_pairs']} impostor pairs{expected}{extra}; {r['data']}{failed}) recorded in {where}")
 
 
-def _remote_threshold(client) -> dict | None:
-    """The service's calibrated threshold record (its /v1/stats), or None when it has none or cannot say: a hint
-    about it never fails the answer it follows."""
-    try:
-        record = client.stats().get("threshold")
-    except Exception:  # noqa: BLE001 - the decision was made and is printed whatever this says
-        return None
-    return record if isinstance(record, dict) else None
-
-
-def _few_pairs_hint(record: dict | None, where) -> str | None:
+def _few_pairs_hint(expected: float | None, where, pairs: int | None = None) -> str | None:
     """A hint when the gallery's calibrated threshold rests on too few impostor pairs for its false-match rate
-    (`evaluation.calibrate.too_few_pairs`): how many strangers' claims to expect through, and what to do."""
-    from facerec3d.evaluation.calibrate import too_few_pairs
-
-    expected = too_few_pairs(record)
+    (`evaluation.calibrate.too_few_pairs`: the rate `expected` of strangers' claims), and what to do; None without."""
     if expected is None:
         return None
-    return (f"hint: the gallery's threshold was calibrated on {record.get('impostor_pairs')} impostor pairs, too few "
-            f"for its false-match rate: about {expected:.0%} of strangers' claims are accepted. Calibrate it on "
-            f"scans of more people, enrolled or not: facerec3d gallery {where} calibrate SCANS")
+    on = f"on {pairs} impostor pairs, " if pairs is not None else "on "
+    return (f"hint: the gallery's threshold was calibrated {on}too few for its false-match rate: about "
+            f"{expected:.0%} of strangers' claims are accepted. Calibrate it on scans of more people, enrolled or "
+            f"not: facerec3d gallery {where} calibrate SCANS")
 
 
 @gallery.command("calibrate")

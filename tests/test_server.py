@@ -399,9 +399,12 @@ def test_cli_against_the_service(setup):
     r = run.invoke(main, ["verify", str(probe_file(tmp, 30, 3)), "--server", url, "--claim", "s30"])
     assert r.exit_code == 0 and r.output.startswith("accept"), r.output
     # the enrolment calibrated the service's threshold on its 2 scans against the 4 other people: 8 impostor pairs,
-    # about 1 stranger's claim in 9 accepted, which the answer's hint says (as a local gallery's verify does)
-    assert "calibrated on 8 impostor pairs" in r.output and "about 11% of strangers' claims" in r.output, r.output
+    # about 1 stranger's claim in 9 accepted: the answer says so (expected_fmr) and the CLI's hint with it
+    assert "too few for its false-match rate: about 11% of strangers' claims" in r.output, r.output
     assert f"facerec3d gallery --server {url} calibrate SCANS" in r.output, r.output
+    with Client(url, setup["key"]["alice"]) as c:
+        assert c.verify(probe_file(tmp, 30, 3), "s30")["expected_fmr"] == pytest.approx(1 / 9)
+        assert "expected_fmr" not in c.verify(probe_file(tmp, 30, 3), "s30", -50.0)  # a threshold given: its own
     r = run.invoke(main, ["verify", str(probe_file(tmp, 30, 3)), "--server", url, "--claim", "s30", "--threshold", "-50"])
     assert r.exit_code == 0 and "hint" not in r.output, r.output
     r = run.invoke(main, ["verify", str(probe_file(tmp, 30, 3)), "--server", url, "--claim", "s2"])

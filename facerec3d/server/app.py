@@ -606,13 +606,17 @@ def _identify(job: Job, live: LiveGallery, received: Received, k: int, cascade: 
             "gallery_version": version, "preprocessed_upload": given, "timings": timings}
 
 
-def _verify(job: Job, live: LiveGallery, received: Received, claim: str, threshold: float) -> dict:
+def _verify(job: Job, live: LiveGallery, received: Received, claim: str, threshold: float,
+            expected_fmr: float | None = None) -> dict:
+    """The answer of /v1/verify; `expected_fmr` (the gallery's threshold calibrated on too few impostor pairs:
+    `evaluation.calibrate.too_few_pairs`) is added when given."""
     upload = received.read()
     probe, timings, given = _work(job, live, probe_job, upload, live.max_points, live.config, live.matcher, None)
     t0 = time.perf_counter()
     score, version = live.verify(probe, claim)
     timings["match_ms"] = 1e3 * (time.perf_counter() - t0)
     return {"claim": claim, "accepted": bool(score >= threshold), "score": _number(score), "threshold": threshold,
+            **({"expected_fmr": expected_fmr} if expected_fmr is not None else {}),
             "method": live.matcher.name, "gallery_version": version, "preprocessed_upload": given, "timings": timings}
 
 
@@ -773,6 +777,7 @@ def create_app(service: Service):
         """The decision, the score and the threshold used; 404 when the claimed subject is not enrolled."""
         await _once(request)
         try:
+            expected = None if threshold is not None else live.expected_fmr()
             threshold = live.threshold(threshold)
         except GalleryError as e:
             raise ApiError(422, str(e)) from None
@@ -781,7 +786,7 @@ def create_app(service: Service):
         if not any(e.subject == claim for e in live.entries):
             raise ApiError(404, f"subject {claim!r} is not enrolled")
         upload = _upload(probe, format, intrinsics)
-        return service.counted(await service.run(request, _verify, live, upload, claim, threshold))
+        return service.counted(await service.run(request, _verify, live, upload, claim, threshold, expected))
 
     @app.post(f"{API}/calibrate", summary="Calibrate the verification threshold on labelled scans (scope admin)")
     async def calibrate(request: Request,

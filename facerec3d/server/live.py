@@ -43,7 +43,7 @@ import numpy as np
 
 from facerec3d.config import DEFAULT_METHOD
 from facerec3d.errors import FaceRec3DError
-from facerec3d.evaluation.calibrate import pair_scores
+from facerec3d.evaluation.calibrate import pair_scores, too_few_pairs
 from facerec3d.gallery.cascade import CascadeConfig, check_cascadable
 from facerec3d.gallery.engine import Engine, Probe, ShardedGallery
 from facerec3d.gallery.service import gallery_threshold
@@ -200,7 +200,8 @@ class LiveGallery:
                 store.check_matcher(make_matcher(method, options))
         self.config = store.preprocess_config()
         self.matcher = store.matcher()
-        self._default_threshold: float | None = None  # read once (the store's calibration, or the method's)
+        self._default_threshold: tuple[float, float | None] | None = None  # read once: (the store's calibration, or
+        #   the method's; the false-match rate to expect of a calibration on too few impostor pairs, else None)
         entries = store.entries()
         gallery = self.engine.load(self.matcher, store.templates(entries))
         self.cascadable = True
@@ -296,9 +297,20 @@ class LiveGallery:
         """The verification threshold: given, or the gallery's calibrated one, or the method's default."""
         if threshold is not None:
             return float(threshold)
+        return self._threshold()[0]
+
+    def expected_fmr(self) -> float | None:
+        """The false-match rate to expect of the gallery's own threshold when it was calibrated on too few impostor
+        pairs for the rate asked (`evaluation.calibrate.too_few_pairs`), else None."""
+        return self._threshold()[1]
+
+    def _threshold(self) -> tuple[float, float | None]:
         if self._default_threshold is None:
-            self._default_threshold = self._writer.submit(gallery_threshold, self._store, self.matcher.name).result()
+            self._default_threshold = self._writer.submit(self._read_threshold).result()
         return self._default_threshold
+
+    def _read_threshold(self) -> tuple[float, float | None]:
+        return gallery_threshold(self._store, self.matcher.name), too_few_pairs(self._store.threshold())
 
     def calibration_scores(self, probes: list[Probe], subjects: list[str], contents: list[str],
                            check: Callable[[], None] = lambda: None) -> tuple[np.ndarray, np.ndarray, int]:
@@ -373,7 +385,7 @@ class LiveGallery:
 
     def _record_threshold(self, record: dict, who: dict) -> None:
         self._store.set_threshold(record)
-        self._default_threshold = float(record["value"])
+        self._default_threshold = (float(record["value"]), too_few_pairs(record))
         self.audit.write("calibrate", value=record["value"], rule=record["rule"], data=record["data"],
                          scans=record["scans"], **who)
 
