@@ -777,8 +777,7 @@ def create_app(service: Service):
         """The decision, the score and the threshold used; 404 when the claimed subject is not enrolled."""
         await _once(request)
         try:
-            expected = None if threshold is not None else live.expected_fmr()
-            threshold = live.threshold(threshold)
+            threshold, expected = (float(threshold), None) if threshold is not None else live.default_threshold()
         except GalleryError as e:
             raise ApiError(422, str(e)) from None
         if not math.isfinite(threshold):

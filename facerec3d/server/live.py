@@ -293,18 +293,10 @@ class LiveGallery:
             hits = [(snap.entries[i], float(scores[i])) for i in rank(scores, tiebreak)[:k] if np.isfinite(scores[i])]
             return hits, snap.version, len(snap.entries)
 
-    def threshold(self, threshold: float | None) -> float:
-        """The verification threshold: given, or the gallery's calibrated one, or the method's default."""
-        if threshold is not None:
-            return float(threshold)
-        return self._threshold()[0]
-
-    def expected_fmr(self) -> float | None:
-        """The false-match rate to expect of the gallery's own threshold when it was calibrated on too few impostor
-        pairs for the rate asked (`evaluation.calibrate.too_few_pairs`), else None."""
-        return self._threshold()[1]
-
-    def _threshold(self) -> tuple[float, float | None]:
+    def default_threshold(self) -> tuple[float, float | None]:
+        """(the gallery's calibrated threshold, else the method's default; the false-match rate to expect of that
+        calibration when it rests on too few impostor pairs for the rate asked, `evaluation.calibrate.too_few_pairs`,
+        else None), read together."""
         if self._default_threshold is None:
             self._default_threshold = self._writer.submit(self._read_threshold).result()
         return self._default_threshold
