@@ -34,9 +34,9 @@ RANGES: dict[str, tuple[float, float, bool]] = {
         # preprocessing
         "crop_radius_mm", "coverage_radius_mm", "window", "distance_mm", "k", "sample_mm",
         "window_mm", "separation_mm", "candidates", "context_mm", "seen_radius_mm", "seen_radius_px",
-        "tip_radius_mm", "ring_mm", "crown_mm", "crown_reach_mm", "crown_depth_mm", "max_roll_deg", "finalists", "iterations",
-        "start_distance_mm", "end_distance_mm", "radius_mm", "max_points", "nose_candidates", "core_radius_mm", "inlier_mm",
-        "ring_px", "resolution_mm", "half_width_mm", "edge_factor",
+        "tip_radius_mm", "ring_mm", "crown_mm", "crown_reach_mm", "crown_depth_mm", "max_roll_deg", "finalists",
+        "screened", "iterations", "start_distance_mm", "end_distance_mm", "radius_mm", "max_points", "nose_candidates",
+        "core_radius_mm", "inlier_mm", "ring_px", "resolution_mm", "half_width_mm", "edge_factor",
         # matching
         "max_iterations", "coarse_points", "distance_start", "distance_end", "max_reach_mm", "voxel_size",
         "normal_neighbours", "step_mm", "sigma_mm", "committee_radius", "radius", "nms_radius", "max_keypoints",

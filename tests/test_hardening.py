@@ -517,6 +517,7 @@ def test_cache_entries_are_written_atomically(data, tmp_path, monkeypatch):
     ('[detect]\ncrop_radius_mm = 70\n', "detect: unknown DetectConfig settings: crop_radius_mm"),
     ('[detect]\nmin_seen = 1.5\n', "detect.min_seen: must be in [0, 1], not 1.5"),
     ('[detect]\nmax_roll_deg = 0\n', "detect.max_roll_deg: must be > 0, not 0"),  # a divisor (head_penalty)
+    ('[detect]\nscreen_iterations = 4\nscreened = 0\n', "detect.screened: must be > 0, not 0"),  # IndexError on every scan
     ('[spikes]\nwindow = 2.5\n', "spikes.window: must be an integer, not 2.5"),
     ('gridify_mm = "0.7"\n', "gridify_mm: must be a number, not '0.7'"),
     ('[denoise]\nmethod = "blur"\n', "denoise: unknown denoising method 'blur'"),
