@@ -13,21 +13,27 @@ per scan, beside the same faces as range images (the reference row), and names t
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
-import tempfile
-import time
-from pathlib import Path
+import os
 
-import numpy as np
-from scipy.spatial.transform import Rotation
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # one BLAS thread, as the CLI's workers have: with a thread per core and another
+    #                                   process on the 2 cores, a 2 mm mesh took ~5 s instead of ~1.5 s (2026-12-06)
 
-from facerec3d.datasets.synthetic import FaceScanner, ScanSpec, export_surface, sensor_profile
-from facerec3d.errors import FailureToAcquire
-from facerec3d.io import load_scan, save_scan
-from facerec3d.matching.registry import make_matcher
-from facerec3d.preprocess import Preprocessor, landmarks_in_input_frame
+import argparse  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
+
+from facerec3d.datasets.synthetic import FaceScanner, ScanSpec, export_surface, sensor_profile  # noqa: E402
+from facerec3d.errors import FailureToAcquire  # noqa: E402
+from facerec3d.io import load_scan, save_scan  # noqa: E402
+from facerec3d.matching.registry import make_matcher  # noqa: E402
+from facerec3d.preprocess import Preprocessor, landmarks_in_input_frame  # noqa: E402
 
 
 def run_format(syns, spacing: float | None, mesh: bool, folder: Path) -> dict:

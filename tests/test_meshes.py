@@ -124,11 +124,15 @@ def test_a_mesh_is_not_turned_upside_down_onto_its_chin(tmp_path):
 # placement and the right one both fitted 100 % of the points, the right one with a likelier face (the identity
 # prior: `detect.placement_score`); the true nose of the first 1 mm mesh is the third nose candidate (two were
 # tried); with three candidates the second 1 mm mesh's true placement was the fifth rigid fit (four got a full fit),
-# and the Kinect-quality cloud's the fifth distinct one, behind a wrong roll of its own candidate.
+# and the Kinect-quality cloud's the fifth distinct one, behind a wrong roll of its own candidate. With 50 people,
+# one probe seen 34° (2 mm mesh) and 32° (4 mm points) off +z, its view misjudged as 28–29°, kept its frame: there
+# the mesh showed no nose (the face seen from behind won, then failed to acquire) and the points fitted upside down.
 @pytest.mark.parametrize(("sensor", "subject", "seed", "yaw", "spacing", "mesh", "export"),
                          [("frgc", 8, 108, 0.0, 4.0, True, 4017), ("frgc", 0, 200, -12.0, 1.0, True, 1041),
-                          ("frgc", 17, 117, 0.0, 1.0, True, 1035), ("kinect-v2", 17, 217, 12.0, 3.0, False, 3074)],
-                         ids=["4mm-tie", "1mm-third-candidate", "1mm-fifth-rigid-fit", "kinect-3mm-fifth-distinct"])
+                          ("frgc", 17, 117, 0.0, 1.0, True, 1035), ("kinect-v2", 17, 217, 12.0, 3.0, False, 3074),
+                          ("frgc", 19, 219, 12.0, 2.0, True, 2139), ("frgc", 19, 219, 12.0, 4.0, False, 4138)],
+                         ids=["4mm-tie", "1mm-third-candidate", "1mm-fifth-rigid-fit", "kinect-3mm-fifth-distinct",
+                              "2mm-seen-34deg-off", "4mm-points-seen-32deg-off"])
 def test_a_surface_is_turned_head_up_where_wrong_placements_fit_as_well(sensor, subject, seed, yaw, spacing, mesh,
                                                                         export, tmp_path):
     syn = FaceScanner(sensor_profile(sensor)).scan(ScanSpec(subject, yaw=yaw, seed=seed))

@@ -45,7 +45,8 @@ from facerec3d.geometry.ball import BallIndex, nearest_index, within_ball
 from facerec3d.geometry.normals import least_eigenvector
 from facerec3d.geometry.transforms import rotation_from_euler
 from facerec3d.preprocess.propose import NoseProposer
-from facerec3d.preprocess.pose import ModelFit, ModelFitConfig, ModelFitting, fit_face_model, hotelling_rotation
+from facerec3d.preprocess.pose import (ModelFit, ModelFitConfig, ModelFitting, fit_face_model, hotelling_rotation,
+                                       screen_fits)
 from facerec3d.scan import FaceScan
 
 
@@ -410,11 +411,9 @@ def _detect_face(scan: FaceScan, config: DetectConfig) -> Detection:
     every = around if tested is scan else Neighbours(scan, config, sight=False)  # the full fits see every point
     fitting = [ModelFitting(every.points(f, config.context_mm, exact=True), f.R, f.t, config.model)
                for f in finalists]
-    if 0 < config.screen_iterations < config.model.iterations and config.screened < len(finalists):
-        ranked = rank_placements([g.run(config.screen_iterations).result() for g in fitting], finalists, tested,
-                                 around, sub, crown, config)
-        keep = sorted(x.index for x in ranked[: config.screened])  # in the finalists' order (ties stay as they were)
-        fitting, finalists = [fitting[i] for i in keep], [finalists[i] for i in keep]
+    keep = screen_fits(fitting, config.screen_iterations, config.screened, lambda fits: [
+        x.index for x in rank_placements(fits, finalists, tested, around, sub, crown, config)])
+    fitting, finalists = [fitting[i] for i in keep], [finalists[i] for i in keep]  # in the finalists' order
     ranked = rank_placements([g.run().result() for g in fitting], finalists, tested, around, sub, crown, config)
     fit, (protrusion, dome), (_, seen) = ranked[0].fit, ranked[0].heights, ranked[0].seen
     if not ranked[0].face_shaped:

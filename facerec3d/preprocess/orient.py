@@ -7,8 +7,9 @@ it is seen along +z, head up, in two steps, each measured on the surface itself:
 1. `view_axis`: the axis the surface was seen along, the area-weighted mean of its unit normals (a single-view
    scan shows only surface that faces its viewer). Which end of it the viewer was at, the normals do not tell
    (a mesh's winding may be either way, a point cloud has none): both are tried in step 2, and the one where
-   the face fits better wins. A view within `OrientConfig.max_tilt_deg` of +z is taken as the camera's own
-   and the frame is kept; any other is turned so it is seen along +z.
+   the face fits better wins. A view within `OrientConfig.both_from_deg` of +z is taken as the camera's own
+   and the frame is kept; one beyond `max_tilt_deg` is turned so it is seen along +z; one between is tried both
+   ways, and again the better fit wins.
 2. `upright_fit`: the rigid mean face of the morphable model is fitted around the strongest nose candidates from
    `rolls` starting turns about the view axis (the detector's coarse fit); the best fit's vertical axis turns
    the scan head up, as face detection's upright-head prior expects (Mian et al. 2007). As in the detector, fits
@@ -31,7 +32,8 @@ import numpy as np
 from facerec3d.geometry.ball import within_ball
 from facerec3d.geometry.transforms import rotation_from_euler
 from facerec3d.preprocess.detect import DetectConfig, Neighbours, nose_candidates, placement_score, shows_nose
-from facerec3d.preprocess.pose import fit_face_model, hotelling_rotation, rotation_to_z
+from facerec3d.preprocess.pose import (ModelFitting, fit_face_model, hotelling_rotation, rotation_to_z,
+                                       screen_fits)
 from facerec3d.preprocess.resample import front_points, gridify, point_spacing
 from facerec3d.scan import FaceScan
 
@@ -41,13 +43,19 @@ class OrientConfig:
     """How a scan without a range-image grid is turned to be seen along +z, head up (module docstring)."""
 
     enabled: bool = True
-    max_tilt_deg: float = 30.0  # a view within this of +z is the camera's own (a head turned 30° in a camera frame
-    #                             shows a mean normal ~15–25° off the axis, so camera frames are kept as they are)
+    max_tilt_deg: float = 30.0  # a view within this of +z may be the camera's own (a head turned 30° in a camera
+    #                             frame shows a mean normal ~15–25° off the axis, so camera frames are kept as they are)
+    both_from_deg: float = 10.0  # a view between this and max_tilt_deg off +z is fitted both ways, the frame kept
+    #                             and turned, and the better fit wins: the mean normal misjudges the view by up to ~6°,
+    #                             and a face seen 32–34° off +z in a kept frame was fitted upside down or not found
+    #                             (`mesh_bench.py --subjects 50`, 2026-12-06: subject 19's probe at 2 and 4 mm)
     rolls: tuple[float, ...] = (0.0, 45.0, 90.0, 135.0, 180.0, 225.0, 270.0, 315.0)  # degrees: starting turns of
     #                             the upright fit about the view axis (the coarse fit converges from ±25°)
     nose_candidates: int = 3  # the strongest nose candidates tried by the upright fit
     normal_neighbours: int = 12  # neighbours of a point cloud's points whose plane gives its normal
     sample_mm: float = 2.0  # the upright fit works on a range image of this pitch (or the scan's, if coarser)
+    screen_iterations: int = 4  # the finalists' full fits run this many iterations, are ranked, and only the
+    screened: int = 2  #          `screened` best so ranked run to the end (0: every one to the end)
 
 
 @dataclass(frozen=True)
@@ -153,12 +161,15 @@ def upright_fit(grid_scan: FaceScan, config: OrientConfig = OrientConfig(),
             fit = fit_face_model(near, T, -T @ c, detect.coarse)
             rigid.append(((shows_nose(around, fit, detect), fit.inlier_fraction), fit, near))
     rigid.sort(key=lambda f: f[0], reverse=True)  # stable: ties keep the candidates' order
+    fitting = [ModelFitting(near, fit.R, fit.t, detect.model) for fit, near in _finalists(rigid)]
+    key = lambda full: (shows_nose(around, full, detect), placement_score(full, detect))
     best, best_key = None, (False, 0.0)
-    for fit, near in _finalists(rigid):
-        full = fit_face_model(near, fit.R, fit.t, detect.model)
-        key = (shows_nose(around, full, detect), placement_score(full, detect))
-        if best is None or key > best_key:
-            best, best_key = full, key
+    for i in screen_fits(fitting, config.screen_iterations, config.screened,  # stable sort: ties keep their order
+                         lambda fits: sorted(range(len(fits)), key=lambda j: key(fits[j]), reverse=True)):
+        full = fitting[i].run().result()
+        k = key(full)
+        if best is None or k > best_key:
+            best, best_key = full, k
     if best is None:
         return 0.0, (False, 0.0)
     return _roll(best.R), (bool(best_key[0]), float(best_key[1]))
@@ -174,11 +185,13 @@ def orient(scan: FaceScan, config: OrientConfig = OrientConfig(),
     cell = max(config.sample_mm, point_spacing(scan.points))  # the sign and the roll need only the face's shape
     best = None
     for v in (axis, -axis):  # seen from one side of the axis or the other: the side the face fits better
-        turned = bool(np.degrees(np.arccos(np.clip(v[2], -1.0, 1.0))) > config.max_tilt_deg)
-        R = rotation_to_z(v) if turned else np.eye(3)
-        seen = scan.transformed(R, np.zeros(3))
-        roll, fits = upright_fit(gridify(front_points(seen, cell), cell), config, detect)  # nose first, then inliers
-        if best is None or fits > best[0]:
-            best = (fits, Orientation(rotation_from_euler(0.0, 0.0, roll) @ R, v, turned, roll))
+        tilt = np.degrees(np.arccos(np.clip(v[2], -1.0, 1.0)))
+        frames = [True] if tilt > config.max_tilt_deg else [False, True] if tilt > config.both_from_deg else [False]
+        for turned in frames:  # the frame kept (a camera's), turned to be seen along v, or both: the better fit
+            R = rotation_to_z(v) if turned else np.eye(3)
+            seen = scan.transformed(R, np.zeros(3))
+            roll, fits = upright_fit(gridify(front_points(seen, cell), cell), config, detect)  # nose, then inliers
+            if best is None or fits > best[0]:
+                best = (fits, Orientation(rotation_from_euler(0.0, 0.0, roll) @ R, v, turned, roll))
     view = best[1]
     return scan.transformed(view.R, np.zeros(3)), view

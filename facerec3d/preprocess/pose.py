@@ -11,6 +11,7 @@ probe and a gallery face start within the matcher's zone of convergence.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -677,3 +678,14 @@ class ModelFitting:
         rms = float(np.sqrt(np.mean(dist[good] ** 2))) if good.any() else float("inf")
         return ModelFit(R, t - nose, landmarks, rms, float(good.mean()) if len(good) else 0.0, self.c, V - nose,
                         normals.copy() if normals is fb.normals else normals)
+
+
+def screen_fits(fitting: list[ModelFitting], iterations: int, keep: int,
+                best_first: Callable[[list[ModelFit]], Sequence[int]]) -> list[int]:
+    """Which of several fits to run to the end (indices, in their given order): each run `iterations` iterations
+    first and ranked by `best_first` (their fits so far -> indices, best first), the `keep` best; every one when
+    screening is off (`iterations` 0 or the whole schedule, or `keep` no fewer than the fits). A kept fit run on
+    to the end is that fit run to the end at once (`ModelFitting`), so screening only decides which are finished."""
+    if not (fitting and 0 < iterations < fitting[0].config.iterations and keep < len(fitting)):
+        return list(range(len(fitting)))
+    return sorted(best_first([g.run(iterations).result() for g in fitting])[:keep])
