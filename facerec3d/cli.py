@@ -12,6 +12,7 @@ import click
 
 from facerec3d.config import DEFAULT_METHOD, DEFAULT_THRESHOLDS
 from facerec3d.errors import FaceRec3DError, threshold_text
+from facerec3d.workers import one_blas_thread
 
 
 def friendly(fn):
@@ -273,7 +274,7 @@ def view(file, output, with_face):
             from facerec3d.errors import FailureToAcquire
 
             try:
-                with _one_blas_thread():
+                with one_blas_thread():
                     face = Preprocessor()(scan)
             except FailureToAcquire as e:  # the scan itself can still be looked at
                 raise FailureToAcquire(f"{e.reason} (`facerec3d view --raw` renders the scan as it is)",
@@ -436,14 +437,6 @@ def _cascade_config(cascade: bool, shortlist: int, screen: str = "depth"):
     return CascadeConfig(shortlist=shortlist, screen=screen) if cascade else None
 
 
-def _one_blas_thread():
-    """One BLAS/OpenMP thread while a single probe is preprocessed and matched, as the batch path's workers have
-    (on a busy machine, a thread per core makes one probe many times slower)."""
-    from threadpoolctl import threadpool_limits
-
-    return threadpool_limits(1)
-
-
 def _server_options(fn):
     """--server and --api-key: the same command against a gallery service (facerec3d serve)."""
     fn = click.option("--api-key", envvar="FACEREC3D_API_KEY", show_envvar=True,
@@ -463,7 +456,7 @@ def _edge(server, preprocess_locally):
     """The cap on BLAS threads while scans are preprocessed here (--preprocess-locally), else nothing."""
     from contextlib import nullcontext
 
-    return _one_blas_thread() if server and preprocess_locally else nullcontext()
+    return one_blas_thread() if server and preprocess_locally else nullcontext()
 
 
 def _local_only(server, gallery, *names):
@@ -874,7 +867,7 @@ def identify(probe, gallery, k, config_file, cache, intrinsics, cascade, shortli
     from facerec3d.preprocess import PreprocessConfig
 
     config = PreprocessConfig.load(config_file) if config_file else None
-    with _one_blas_thread(), GalleryStore(gallery) as store, \
+    with one_blas_thread(), GalleryStore(gallery) as store, \
             Engine.create(jobs, scheduler, items=len(store.entries())) as engine:  # a shard per entry at most
         hits = identify_scan(store, probe, k=k, cascade=_cascade_config(cascade, shortlist, screen), config=config,
                              engine=engine, cache=_cache_folder(cache), intrinsics=intrinsics)
@@ -926,7 +919,7 @@ def verify(probe, gallery, claim, threshold, config_file, cache, intrinsics, ser
 
     config = PreprocessConfig.load(config_file) if config_file else None
     given = threshold is not None
-    with _one_blas_thread(), GalleryStore(gallery) as store:
+    with one_blas_thread(), GalleryStore(gallery) as store:
         accepted, score, threshold = verify_scan(store, probe, claim, threshold=threshold, config=config,
                                                  cache=_cache_folder(cache), intrinsics=intrinsics)
         record = None if given else store.threshold()
@@ -1258,6 +1251,8 @@ def train_nose(out, samples, epochs, seed, data_seed, trainset, jobs):
               help="Head turns drawn up to this many degrees left or right.")
 @click.option("--max-pitch", default=20.0, show_default=True, type=click.FloatRange(0, 60),
               help="Heads tilted up to this many degrees up or down.")
+@click.option("--terraces", default=0.0, show_default=True, type=click.FloatRange(0, 1),
+              help="Share of the training windows given the ripple of coarse depth steps (augmentation).")
 @click.option("--trainset", type=click.Path(dir_okay=False),
               help="File keeping the preprocessed training faces, reused when its recipe is the same "
                    "[default: OUT with .trainset.npz].")
@@ -1273,7 +1268,7 @@ def train_nose(out, samples, epochs, seed, data_seed, trainset, jobs):
               help="Processes making the training faces; torch trains on as many threads.")
 @friendly
 def train_embedding(out, identities, scans, sensors, identity_profiles, epochs, width, seed, data_seed, max_yaw,
-                    max_pitch, trainset, real, real_subjects, init, cache, jobs):
+                    max_pitch, terraces, trainset, real, real_subjects, init, cache, jobs):
     """Train the learned embedding on synthetic faces (and --real people) and write OUT (ONNX), its card
     (OUT with .json) and weights (.weights.npz). Needs the [train] extra (PyTorch); using a model never does:
     --method embedding with the method setting model = "OUT"."""
@@ -1302,7 +1297,7 @@ def train_embedding(out, identities, scans, sensors, identity_profiles, epochs, 
             click.echo(f"real faces: {extra.info['scans']} of {extra.info['subjects']} people "
                        f"({extra.info['failures']} failed to preprocess)")
             data = data.joined(extra)
-    config = TrainConfig(width=width, epochs=epochs, seed=seed, threads=max(1, jobs))
+    config = TrainConfig(width=width, epochs=epochs, seed=seed, threads=max(1, jobs), terraces=terraces)
     net, figures = train(data.windows, data.labels, inputs, recipe.margin, config, init=init)
     path = export(net, out, inputs, {"command": " ".join(["facerec3d", *sys.argv[1:]]), "data": data.info,
                                      "train": dataclasses.asdict(config),

@@ -23,15 +23,11 @@ from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
 from typing import Any
 
-from threadpoolctl import ThreadpoolController
-
 from facerec3d.errors import InputError
 
 #: Local worker processes at most per core: more only queue for the cores, and each holds pipes open (--jobs 100000
 #: ran out of open files before any work).
 JOBS_PER_CORE = 4
-
-_THREADPOOLS = ThreadpoolController()  # made once: inspecting the loaded BLAS libraries costs milliseconds
 
 
 def useful_jobs(jobs: int | None, items: int | None = None) -> int:
@@ -41,6 +37,18 @@ def useful_jobs(jobs: int | None, items: int | None = None) -> int:
     cores = os.cpu_count() or 1
     n = min(cores if jobs is None else jobs, JOBS_PER_CORE * cores)
     return max(1, n if items is None else min(n, items))
+
+
+def one_blas_thread():
+    """A context in which BLAS / OpenMP run one thread, as in the workers, restored on leaving: for work done in the
+    caller's own process (a probe preprocessed and matched by the CLI, `Preprocessor` called from a library). A
+    thread per core makes such small linear algebra slower even on a quiet machine and many times slower on a busy
+    one (`Preprocessor` on a Kinect frame and 2 / 3 mm meshes, 2 cores: 133 / 607 ms against 99 / 511 ms quiet,
+    398 / 3,619 ms against 155 / 855 ms beside two busy processes). Each entry costs ~0.2 ms (threadpoolctl
+    inspects the libraries loaded by then)."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(1)
 
 
 def one_thread_per_process() -> None:
@@ -105,7 +113,7 @@ class InlineExecutor(Executor):
     def submit(self, fn, /, *args, **kwargs) -> Future:
         f: Future = Future()
         try:
-            with _THREADPOOLS.limit(limits=1):
+            with one_blas_thread():
                 f.set_result(fn(*args, **kwargs))
         except BaseException as e:  # handed to the caller by f.result()
             f.set_exception(e)

@@ -314,3 +314,23 @@ def test_ctrl_c_while_a_worker_starts_is_noted_quietly(tmp_path, monkeypatch, ca
             workers.executors[0].submit(os.getpid).result()
     assert held.read_text() == "True"
     assert capfd.readouterr().err == ""
+
+
+def _blas_threads() -> list[int]:
+    from threadpoolctl import threadpool_info
+
+    return sorted(p["num_threads"] for p in threadpool_info())
+
+
+def test_work_done_in_this_process_runs_every_blas_library_on_one_thread():
+    """`jobs` = 1 runs work here (InlineExecutor): one thread for every BLAS library loaded by then, SciPy's own
+    included (a controller made when the module was imported had seen only NumPy's), and the caller's back after."""
+    import scipy.linalg  # noqa: F401 (SciPy's BLAS loaded)
+
+    from facerec3d.workers import InlineExecutor
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(2):
+        before = _blas_threads()
+        inside = InlineExecutor().submit(_blas_threads).result()
+        assert set(inside) == {1} and _blas_threads() == before and max(before) == 2

@@ -11,7 +11,7 @@ from scipy import ndimage
 from facerec3d import FailureToAcquire
 from facerec3d.cli import main
 from facerec3d.datasets.synthetic import (
-    EXPRESSIONS, DatasetConfig, FaceScanner, ScanSpec, identity_profile, plan_dataset, quick_scan)
+    EXPRESSIONS, DatasetConfig, FaceScanner, ScanSpec, identity_profile, plan_dataset, quick_scan, sensor_profile)
 from facerec3d.geometry.transforms import rotation_angle
 from facerec3d.io import save_scan
 from facerec3d.preprocess import (
@@ -723,3 +723,25 @@ def test_holes_are_filled_by_the_thin_plate_on_fine_scans_and_cubically_on_coars
         for name in ("thin-plate", "cubic"):
             same = np.array_equal(filled.points, fill_holes(face, HoleConfig(interpolation=name)).points)
             assert same == (name == expected), (sensor, name, face.resolution())
+
+
+def test_a_library_call_preprocesses_on_one_blas_thread_and_gives_the_callers_back(monkeypatch):
+    """`Preprocessor` called in the caller's process (not a worker) caps BLAS at one thread while it runs: a thread
+    per core made it 1.3x slower on a quiet machine and 2.6-4x slower on a busy one."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    import facerec3d.preprocess.pipeline as pipeline
+
+    seen = []
+
+    def spy(*args, **kwargs):
+        seen.append(max(p["num_threads"] for p in threadpool_info()))
+        return detect(*args, **kwargs)
+
+    detect = pipeline.detect_face
+    monkeypatch.setattr(pipeline, "detect_face", spy)
+    scan = FaceScanner(sensor_profile("kinect-v2"), seed=1).scan(ScanSpec(0, seed=0)).scan
+    with threadpool_limits(2):
+        Preprocessor()(scan)
+        after = max(p["num_threads"] for p in threadpool_info())
+    assert seen == [1] and after == 2

@@ -58,6 +58,7 @@ from facerec3d.preprocess.sampling import Sampling, check_surface, measure_sampl
 from facerec3d.preprocess.spikes import SpikeConfig, remove_spikes
 from facerec3d.preprocess.symmetry import SymmetryConfig, complete_by_symmetry
 from facerec3d.scan import FaceScan
+from facerec3d.workers import one_blas_thread
 
 
 @dataclass(frozen=True)
@@ -160,9 +161,15 @@ class Preprocessor:
         return scan, measured, sampling, view
 
     def __call__(self, scan: FaceScan) -> FaceScan:
+        """The preprocessed face of `scan`, computed with one BLAS thread (`workers.one_blas_thread`: its small
+        linear algebra runs slower on more, many times slower on a busy machine); the caller's setting returns after."""
         if not isinstance(scan, FaceScan):
             raise InputError(f"Preprocessor takes a FaceScan (facerec3d.io.load_scan reads a file), not "
                              f"{type(scan).__name__}")
+        with one_blas_thread():
+            return self._preprocess(scan)
+
+    def _preprocess(self, scan: FaceScan) -> FaceScan:
         cfg = self.config
         scan, measured, sampling, view = self.detector_view(scan)
         found = self._timed("detect", detect_face, scan, cfg.detect)
