@@ -221,6 +221,28 @@ def test_a_saved_training_set_is_reused_only_with_todays_preprocessing(tmp_path)
     assert np.allclose(again.windows, made.windows, equal_nan=True)
 
 
+def test_the_terrace_augmentation_ripples_depth_by_at_most_a_millimetre_and_keeps_unseen_cells():
+    pytest.importorskip("torch")
+    from facerec3d.training.embedding import _terraced, augment
+
+    yy, xx = np.mgrid[-40:41, -40:41].astype(float)
+    z = 40.0 - (xx ** 2 + yy ** 2) / 80.0  # a dome, 40 mm high
+    z[:5] = np.nan
+    out = _terraced(z, np.random.default_rng(1))
+    d = out - z
+    assert np.array_equal(np.isnan(out), np.isnan(z))
+    assert 0.2 <= np.nanmax(np.abs(d)) <= 1.0 + 1e-9
+    # a ripple along the depth: equal depths move alike, and the shift changes sign across the dome's 40 mm
+    ring = np.isclose(z, 30.0)
+    assert ring.sum() > 4 and np.ptp(d[ring]) < 1e-9
+    assert np.nanmin(d) < 0 < np.nanmax(d)
+    recipe = InputRecipe()
+    windows = np.repeat(np.nan_to_num(z, nan=0.0)[None, :recipe.size + 8, :recipe.size + 8], 4, axis=0)
+    plain = augment(windows, np.random.default_rng(0), recipe, 4, terraces=0.0)
+    rippled = augment(windows, np.random.default_rng(0), recipe, 4, terraces=1.0)
+    assert plain.shape == rippled.shape and not np.allclose(plain, rippled)
+
+
 def test_a_tiny_model_trained_here_separates_a_few_identities(tmp_path):
     """Needs the [train] extra (pip install -e '.[train]'); CI without torch skips only this test."""
     pytest.importorskip("torch")

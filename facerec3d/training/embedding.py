@@ -8,7 +8,7 @@ loss (Wang et al., CVPR 2018): logits s·(cos θ_y − m) for the true identity,
 
 Augmentation on top of what the synthetic scanner and preprocessing already give (`augment`, NumPy): the window
 shifted by up to `margin` cells (alignment error), mirrored left–right half of the time, turned in the image
-plane (roll residue, σ 4°, half of the time), tilted (yaw / pitch residue, σ 4°), depth noise, a missing side (self-occlusion beyond the data's poses) and a missing patch (occluders).
+plane (roll residue, σ 4°, half of the time), tilted (yaw / pitch residue, σ 4°), depth noise, a missing side (self-occlusion beyond the data's poses), a missing patch (occluders) and, with `terraces`, the ripple of coarse depth steps.
 
 Output: `OUT` (ONNX, opset 18; 17 with a torch before 2.5), `OUT` with `.json` (the card: input and data recipes, seed, epochs, loss and
 validation figures) and `.weights.npz` (the weights as plain arrays, no pickle: `--init` fine-tunes from them).
@@ -55,6 +55,7 @@ class TrainConfig:
     seed: int = 0
     threads: int = 2  # torch CPU threads
     validation_share: float = 0.1  # share of the identities kept out of training for the card's figures
+    terraces: float = 0.0  # share of the windows given depth terraces (`augment`); 0: the shipped model's recipe
 
 
 class EmbeddingNet(nn.Module):
@@ -95,9 +96,11 @@ class CosFace(nn.Module):
 
 
 def augment(windows: np.ndarray, rng: np.random.Generator, recipe: InputRecipe, margin: int,
-            train: bool = True) -> np.ndarray:
+            train: bool = True, terraces: float = 0.0) -> np.ndarray:
     """(B, C, n, n) network inputs of windows with a margin (B, n + 2·margin, …) of depth (mm, NaN: unseen):
-    randomly shifted, tilted, noised and cut when `train`, else the centre crop as it is."""
+    randomly shifted, tilted, noised and cut when `train`, else the centre crop as it is. A share `terraces` of
+    them also gets the ripple that coarse depth steps leave after dequantisation (z + a·sin(2π(z/p + φ)), a
+    0.2–1 mm, p 4–10 mm: contour-like bands in the normals, as on rap3df-2019's 8 mm steps)."""
     n = recipe.size
     out = np.empty((len(windows), N_CHANNELS, n, n), dtype=np.float32)
     yy, xx = (np.mgrid[0:n, 0:n] - (n - 1) / 2) * recipe.step_mm
@@ -113,6 +116,8 @@ def augment(windows: np.ndarray, rng: np.random.Generator, recipe: InputRecipe, 
             z = _rolled(z, rng.normal(0.0, 4.0))
         tilt = np.tan(np.radians(rng.normal(0.0, 4.0, 2)))  # a residual yaw / pitch
         z += tilt[0] * xx + tilt[1] * yy
+        if terraces > 0 and rng.random() < terraces:  # (no draw at 0: the shipped recipe's random stream)
+            z = _terraced(z, rng)
         z += rng.normal(0.0, rng.uniform(0.0, 1.0), z.shape)
         if rng.random() < 0.2:  # a side the camera did not see
             edge = rng.uniform(0.25, 0.45) * n
@@ -124,6 +129,13 @@ def augment(windows: np.ndarray, rng: np.random.Generator, recipe: InputRecipe, 
             z[r0:r0 + h, c0:c0 + v] = np.nan
         out[i] = input_channels(z, recipe)
     return out
+
+
+def _terraced(z: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A depth window (mm, NaN: unseen) with the ripple dequantised depth steps leave: z + a·sin(2π(z/p + φ)),
+    a 0.2–1 mm, period p 4–10 mm along the depth, phase φ at random."""
+    a, p, phase = rng.uniform(0.2, 1.0), rng.uniform(4.0, 10.0), rng.random()
+    return z + a * np.sin(2 * np.pi * (z / p + phase))
 
 
 def _rolled(z: np.ndarray, degrees: float) -> np.ndarray:
@@ -195,7 +207,7 @@ def train_embedding(windows: np.ndarray, labels: np.ndarray, recipe: InputRecipe
         losses = []
         for b in range(len(X) // config.batch):
             idx = order[b * config.batch:(b + 1) * config.batch]
-            x = torch.from_numpy(augment(X[idx], rng, recipe, margin))
+            x = torch.from_numpy(augment(X[idx], rng, recipe, margin, terraces=config.terraces))
             loss = head(net(x), torch.from_numpy(y[idx]))
             opt.zero_grad()
             loss.backward()
