@@ -27,9 +27,8 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
 
-from facerec3d.datasets.synthetic import FaceScanner, ScanSpec, export_surface, sensor_profile  # noqa: E402
+from facerec3d.datasets.synthetic import FaceScanner, ScanSpec, export_surface, random_frame, sensor_profile  # noqa: E402
 from facerec3d.errors import FailureToAcquire  # noqa: E402
 from facerec3d.io import load_scan, save_scan  # noqa: E402
 from facerec3d.matching.registry import make_matcher  # noqa: E402
@@ -44,7 +43,7 @@ def run_format(syns, spacing: float | None, mesh: bool, folder: Path) -> dict:
         scan, R, t = syn.scan, np.eye(3), np.zeros(3)
         if spacing is not None:
             seed = int(spacing * 1000) + 2 * k + mesh
-            R, t = Rotation.random(random_state=seed).as_matrix(), np.random.default_rng(seed).normal(0.0, 500.0, 3)
+            R, t = random_frame(seed)
             path = folder / f"{k}.{'obj' if mesh else 'ply'}"
             save_scan(export_surface(scan, spacing, mesh=mesh, rotation=R, translation=t), path)
             scan = load_scan(path)

@@ -147,13 +147,18 @@ def convert(src, dst):
 @click.option("--subjects", default=20, show_default=True, type=click.IntRange(min=1), help="Number of subjects.")
 @click.option("--scans", default=4, show_default=True, type=click.IntRange(min=1),
               help="Scans per subject (the first is neutral and frontal).")
-@click.option("--format", "fmt", type=click.Choice(["abs", "bnt", "png"]), default="abs", show_default=True,
-              help="FRGC (.abs.gz in nd1/<session>/) or Bosphorus (.bnt) layout, or a depth camera's 16-bit frames "
-                   "(<subject>/front_1.png, ... with intrinsics.json).")
+@click.option("--format", "fmt", type=click.Choice(["abs", "bnt", "png", "obj", "ply"]), default="abs",
+              show_default=True,
+              help="FRGC (.abs.gz in nd1/<session>/) or Bosphorus (.bnt) layout, a depth camera's 16-bit frames "
+                   "(<subject>/front_1.png, ... with intrinsics.json), or a scanner's meshes (obj) or point clouds "
+                   "(ply), --spacing mm between vertices, each in a random frame (the manifest's landmarks in it).")
+@click.option("--spacing", type=click.FloatRange(0.5, 10.0),
+              help="With --format obj / ply: millimetres between vertices (a stereo scanner's ~4)  [default: 2].")
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0))
 @click.option("--first-subject", default=0, show_default=True, type=click.IntRange(min=0),
               help="Number of the first subject: a training set disjoint from the default test set starts at, "
-                   "say, 1000 (identities depend on seed and subject number).")
+                   "say, 1000 (identities depend on seed and subject number). Subject N is named in FRGC's "
+                   "style, 04200 + N: 300 makes 04500.")
 @click.option("--expressions", help="Comma-separated expressions drawn for the expression scans "
               "(of smile, open-mouth, surprise, frown, puffed-cheeks; default all).")
 @click.option("--expression-strength", nargs=2, type=click.FloatRange(0.0, 1.0), default=(0.6, 1.0), show_default=True,
@@ -171,8 +176,8 @@ def convert(src, dst):
 @click.option("--overwrite", is_flag=True, help="Replace the dataset already in OUT (the files its manifest.csv "
               "lists are removed first); without it, an OUT holding a dataset is refused.")
 @friendly
-def synth(out, subjects, scans, fmt, seed, first_subject, expressions, expression_strength, sensor, identities, rows,
-          cols, overwrite):
+def synth(out, subjects, scans, fmt, spacing, seed, first_subject, expressions, expression_strength, sensor,
+          identities, rows, cols, overwrite):
     """Write a synthetic dataset of range scans with ground truth to OUT (refused when OUT holds one, unless
     --overwrite: a gallery enrolled from its files would silently hold other faces)."""
     from dataclasses import replace
@@ -190,11 +195,13 @@ def synth(out, subjects, scans, fmt, seed, first_subject, expressions, expressio
             raise click.UsageError(f"--rows {rows} --cols {cols}: {rows * cols} pixels a scan, more than the "
                                    f"{MAX_POINTS} facerec3d reads")
         scanner = replace(scanner, rows=rows, cols=cols, focal_px=scanner.focal_px * cols / scanner.cols)
+    if spacing is not None and fmt not in ("obj", "ply"):
+        raise click.UsageError(f"--spacing is for meshes and point clouds (--format obj / ply), not --format {fmt}")
     _clear_dataset(Path(out), overwrite)
     cfg = DatasetConfig(subjects=subjects, scans=scans, seed=seed, first_subject=first_subject, expressions=chosen,
                         expression_strength=tuple(expression_strength), scanner=scanner,
                         identity=identity_profile(identities))
-    manifest = write_dataset(out, cfg, fmt, progress=True)
+    manifest = write_dataset(out, cfg, fmt, progress=True, spacing_mm=2.0 if spacing is None else spacing)
     click.echo(f"wrote {subjects * scans} scans; manifest and ground truth: {manifest}")
 
 

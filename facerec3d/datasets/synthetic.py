@@ -733,10 +733,10 @@ def scan_path(spec: ScanSpec, index: int, fmt: str) -> str:
             kind, sub = "YR", f"{'R' if spec.yaw > 0 else 'L'}{int(round(abs(spec.yaw) / 10) * 10)}"
         bs = bosphorus_id(spec.subject)
         return f"{bs}/{bs}_{kind}_{sub}_{spec.seed}.bnt"
-    if fmt == "png":  # a depth camera's frames, one folder per person; the names repeat across people
+    if fmt in ("png", "obj", "ply"):  # a camera's frames or a scanner's meshes, one folder per person
         kind = SCAN_PLAN[spec.seed % len(SCAN_PLAN)]
-        return f"{subject_id(spec.subject)}/{'front' if kind == 'neutral' else kind}_{spec.seed + 1}.png"
-    raise ValueError(f"unknown format {fmt!r}: use 'abs', 'bnt' or 'png'")
+        return f"{subject_id(spec.subject)}/{'front' if kind == 'neutral' else kind}_{spec.seed + 1}.{fmt}"
+    raise ValueError(f"unknown format {fmt!r}: use 'abs', 'bnt', 'png', 'obj' or 'ply'")
 
 
 def frame_intrinsics(scanner: ScannerConfig) -> "Intrinsics":
@@ -754,9 +754,12 @@ MANIFEST_COLUMNS = ("path", "subject", "expression", "label", "session", "pose",
 ) + ("occluder",)
 
 
-def write_dataset(out: str | Path, cfg: DatasetConfig = DatasetConfig(), fmt: str = "abs", progress: bool = False) -> Path:
+def write_dataset(out: str | Path, cfg: DatasetConfig = DatasetConfig(), fmt: str = "abs", progress: bool = False,
+                  spacing_mm: float = 2.0) -> Path:
     """Write a synthetic dataset in FRGC (`abs`) or Bosphorus (`bnt`) layout, or as a depth camera's 16-bit
-    frames (`png`: `<subject>/front_1.png`, ... with `intrinsics.json` at the top), with `manifest.csv`.
+    frames (`png`: `<subject>/front_1.png`, ... with `intrinsics.json` at the top), or as a scanner's meshes
+    (`obj`) or point clouds (`ply`) with vertices about `spacing_mm` apart, each in a random frame of its own
+    (`random_frame`: a stereo scanner's or a world frame, not the camera's), with `manifest.csv`.
 
     The manifest has `path,subject,expression,label,session,pose` (as
     `facerec3d` datasets read it: the subject as the file name gives it, `04200` or for `bnt` `bs000`;
@@ -786,8 +789,13 @@ def write_dataset(out: str | Path, cfg: DatasetConfig = DatasetConfig(), fmt: st
         rel = scan_path(spec, i, fmt)
         s = scanner.scan(spec)
         (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        landmarks = s.landmarks
         if fmt == "png":
             write_depth_image(out / rel, scan_to_frame(s.scan, camera), camera)
+        elif fmt in ("obj", "ply"):
+            R, t = random_frame(cfg.seed * 100_003 + i)
+            save_scan(export_surface(s.scan, spacing_mm, mesh=fmt == "obj", rotation=R, translation=t), out / rel)
+            landmarks = {k: R @ v + t for k, v in landmarks.items()}
         else:
             save_scan(s.scan, out / rel)
         row = {"path": rel, "subject": bosphorus_id(spec.subject) if fmt == "bnt" else s.scan.meta.subject,
@@ -796,7 +804,7 @@ def write_dataset(out: str | Path, cfg: DatasetConfig = DatasetConfig(), fmt: st
                "pose": POSE_LABELS.get(SCAN_PLAN[spec.seed % len(SCAN_PLAN)], ""), "yaw": f"{spec.yaw:.3f}",
                "pitch": f"{spec.pitch:.3f}", "roll": f"{spec.roll:.3f}"}
         for name in TRUTH_LANDMARKS:
-            for axis, value in zip("xyz", s.landmarks[name]):
+            for axis, value in zip("xyz", landmarks[name]):
                 row[f"{name}_{axis}"] = f"{value:.4f}"
         row["occluder"] = spec.occluder or ""
         rows.append(row)
@@ -815,6 +823,14 @@ def quick_scan(subject: int = 0, expression: str = "neutral", *, yaw: float = 0.
     cfg = replace(scanner, **changes) if changes else scanner
     spec = ScanSpec(subject, expression, 1.0, yaw, pitch, roll, seed, occluder)
     return FaceScanner(cfg, identity=identity).scan(spec)
+
+
+def random_frame(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) of a random frame x -> R x + t: a uniformly random rotation and an offset of ~500 mm (σ per axis), as a
+    scanner's or world frame places a face that its camera saw along +z."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.random(random_state=seed).as_matrix(), np.random.default_rng(seed).normal(0.0, 500.0, 3)
 
 
 def export_surface(scan: FaceScan, spacing_mm: float, *, mesh: bool = True, rotation: np.ndarray | None = None,

@@ -591,9 +591,17 @@ class GalleryStore:
     def check_matcher(self, matcher: Matcher) -> None:
         """Refuse a matcher whose method or options are not the gallery's."""
         method, options = self._require("method"), self._settings("options")
-        if matcher.name != method or json.loads(json.dumps(matcher.options())) != options:
-            raise GalleryError(f"{self.path}: the gallery was enrolled with method {method!r} and options "
-                               f"{options}, not {matcher.name!r} with {matcher.options()}")
+        given = json.loads(json.dumps(matcher.options()))
+        if matcher.name != method:
+            raise GalleryError(f"{self.path}: the gallery was enrolled with method {method!r}, not "
+                               f"{matcher.name!r}; leave out --method to use the gallery's, or enrol into a new "
+                               "gallery file")
+        if given != options:
+            diff = "; ".join(f"{k}: {_field(options, k)!r} in the gallery, {_field(given, k)!r} given"
+                             for k in sorted(_differences(options, given)))
+            raise GalleryError(f"{self.path}: the gallery was enrolled with method {method!r} and other options "
+                               f"({diff}); leave out --method-config to use the gallery's, or enrol into a new "
+                               "gallery file")
 
     @_sqlite_errors
     def matcher(self) -> Matcher:
@@ -792,6 +800,13 @@ def removal(entries: Sequence[Entry], ident: str | None, entry: int | None) -> l
         raise ValueError(f"scan {ident!r} names {len(chosen)} entries of {len(subjects)} subjects; remove one by its "
                          "entry id")
     return chosen
+
+
+def _field(d: dict, dotted: str):
+    """The value at a dotted name of nested dicts (None where a level is missing)."""
+    for key in dotted.split("."):
+        d = d.get(key) if isinstance(d, dict) else None
+    return d
 
 
 def _differences(a, b, prefix: str = "") -> Iterator[str]:

@@ -8,7 +8,9 @@ loss (Wang et al., CVPR 2018): logits s·(cos θ_y − m) for the true identity,
 
 Augmentation on top of what the synthetic scanner and preprocessing already give (`augment`, NumPy): the window
 shifted by up to `margin` cells (alignment error), mirrored left–right half of the time, turned in the image
-plane (roll residue, σ 4°, half of the time), tilted (yaw / pitch residue, σ 4°), depth noise, a missing side (self-occlusion beyond the data's poses), a missing patch (occluders) and, with `terraces`, the ripple of coarse depth steps.
+plane (roll residue, σ 4°, half of the time), tilted (yaw / pitch residue, σ 4°), depth noise, a missing side
+(self-occlusion beyond the data's poses), a missing patch (occluders) and, with `terraces`, the ripple of coarse
+depth steps.
 
 Output: `OUT` (ONNX, opset 18; 17 with a torch before 2.5), `OUT` with `.json` (the card: input and data recipes, seed, epochs, loss and
 validation figures) and `.weights.npz` (the weights as plain arrays, no pickle: `--init` fine-tunes from them).
