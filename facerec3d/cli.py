@@ -1537,9 +1537,12 @@ def metrics(scores, fmt, higher_is_better, out, overwrite, bootstrap, seed):
 @click.option("--rule", default="sum", show_default=True, help="sum, product, weighted-sum, borda or consensus.")
 @click.option("--weights", default="", help="Comma-separated, one per file, for --rule weighted-sum (e.g. 2,1,1).")
 @click.option("--top", default=0, show_default=True, help="borda / consensus: points only for each file's TOP best.")
+@click.option("--cohort", default=0.0, show_default=True, type=click.FloatRange(0, 1),
+              help="Share of the best other person's fused score taken off each (the fusion method's `cohort`; 0: "
+                   "the plain combination). Moves no rank.")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists; without it an existing file is refused.")
 @friendly
-def fuse(scores, out, fmt, normalisation, rule, weights, top, overwrite):
+def fuse(scores, out, fmt, normalisation, rule, weights, top, cohort, overwrite):
     """Fuse several systems' score files (SCORES, two or more) into one, as the `fusion` method fuses its members
     (chapter §8.10): each probe's scores normalised over the gallery, then combined; evaluate it with `metrics`."""
     from facerec3d.errors import InputError, SettingsError
@@ -1552,7 +1555,7 @@ def fuse(scores, out, fmt, normalisation, rule, weights, top, overwrite):
     if Path(out).exists() and not overwrite:
         raise InputError(f"{out}: exists; give --overwrite to replace it")
     try:
-        m, left_out = fuse_score_files(list(scores), fmt, rule, normalisation, w, top)
+        m, left_out = fuse_score_files(list(scores), fmt, rule, normalisation, w, top, cohort)
     except SettingsError as e:  # a weight or --top out of range: named as the option
         raise InputError(f"--{e.field}: {e.reason}") from None
     partial = Path(out).with_name(Path(out).name + ".partial")

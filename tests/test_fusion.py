@@ -278,3 +278,81 @@ def test_a_gallery_stored_with_weights_its_rule_ignored_loads_as_it_scored():
     assert region.config.weights == () and region.config.rule == "sum"
     weighted = dict(stored, rule="weighted-sum", weights=[1.0, 2.0, 0.5], member_options={})
     assert FusionMatcher.from_stored(weighted).config.weights == (1.0, 2.0, 0.5)  # used weights are kept
+
+
+def test_the_best_other_person_is_taken_off_without_moving_any_rank():
+    from facerec3d.matching.normalisation import minus_best_other
+
+    fused = np.array([5.0, 1.0, 4.0, -2.0, 3.0])
+    people = np.array(["a", "b", "a", "c", "d"])  # a has two templates: neither is the other's cohort
+    out = minus_best_other(fused, people, 0.5)
+    # a's templates: less half of d's 3.0 (the best of the others); everyone else's: less half of a's 5.0
+    np.testing.assert_allclose(out, [3.5, -1.5, 2.5, -4.5, 0.5])
+    assert np.array_equal(np.argsort(out), np.argsort(fused))
+    np.testing.assert_array_equal(minus_best_other(fused, people, 0.0), fused)
+    np.testing.assert_array_equal(minus_best_other(fused[[0, 2]], people[[0, 2]], 0.5), fused[[0, 2]])  # one person
+    # a match not found (-inf) is no cohort, and keeps its own score
+    out = minus_best_other(np.array([2.0, -np.inf, 1.0]), np.array(["x", "y", "z"]), 1.0)
+    np.testing.assert_allclose(out, [1.0, -np.inf, -1.0])
+    rng = np.random.default_rng(0)
+    for _ in range(50):  # random galleries with repeated people: the people's order (by best template) kept
+        s, who = rng.normal(size=12), rng.integers(0, 5, 12)
+        out = minus_best_other(s, who, rng.uniform())
+        people = np.unique(who)
+        best_before = [s[who == p].max() for p in people]
+        best_after = [out[who == p].max() for p in people]
+        assert np.array_equal(np.argsort(best_after), np.argsort(best_before))
+        for p in people:  # and each person's own templates keep theirs
+            assert np.array_equal(np.argsort(out[who == p]), np.argsort(s[who == p]))
+
+
+def test_the_cohort_takes_the_best_other_person_off_however_the_gallery_is_sharded(faces):
+    """`cohort` (off by default) takes off a share of the best other person's fused score; a gallery split into
+    shards scores the same (each template's subject travels with its shard's scores); the option is stored."""
+    from facerec3d.matching.base import merge_shard_scores, shard_scores
+
+    gallery, probes = faces
+    m = FusionMatcher(FusionConfig(members=("icp", "region-icp"), cohort=0.5))
+    assert FusionConfig().cohort == 0.0 and FusionMatcher.from_stored(m.options()).config.cohort == 0.5
+    templates = [m.enroll(g) for g in gallery]
+    plain = FusionMatcher(FusionConfig(members=("icp", "region-icp"))).scores(probes[1], templates)[0]
+    with_cohort = m.scores(probes[1], templates)[0]
+    others = np.array([np.max(np.delete(plain, i)) for i in range(len(plain))])
+    np.testing.assert_allclose(with_cohort, plain - 0.5 * others)
+    halves = np.concatenate([shard_scores(m, probes[1], templates[:2]), shard_scores(m, probes[1], templates[2:])],
+                            axis=1)
+    np.testing.assert_allclose(merge_shard_scores(m, halves)[0], with_cohort)
+
+
+def test_evaluate_takes_the_best_other_person_off_as_identify_does(tmp_path):
+    """`evaluate` enrolled depth frames whose scans did not know their person (the manifest names them), so every
+    template had the same subject and the cohort found no other person: its scores were the plain sum while
+    `identify` on a gallery took the best other person off. Both now score alike."""
+    import collections
+
+    from click.testing import CliRunner
+
+    from facerec3d.cli import main
+
+    run = CliRunner()
+    data = tmp_path / "frames"
+    assert run.invoke(main, ["synth", str(data), "--sensor", "kinect-v2", "--format", "png", "--subjects", "4",
+                             "--scans", "2"]).exit_code == 0
+    scores = {}
+    for share in (0.0, 0.5):
+        cfg = tmp_path / f"c{share}.toml"
+        cfg.write_text(f'members = ["icp", "embedding"]\ncohort = {share}\n')
+        r = run.invoke(main, ["evaluate", str(data), "--method", "fusion", "--method-config", str(cfg), "--out",
+                              str(tmp_path / f"run{share}"), "--jobs", "1", "--cache", str(tmp_path / "cache")])
+        assert r.exit_code == 0, r.output
+        S = collections.defaultdict(dict)
+        for line in (tmp_path / f"run{share}" / "scores.txt").read_text().splitlines():
+            g, _, p, s = line.split()
+            S[p][g] = float(s)
+        scores[share] = S
+    assert len(scores[0.0]) == 4
+    for probe, plain in scores[0.0].items():
+        people = sorted(plain)
+        v = np.array([plain[g] for g in people])
+        others = np.array([np.max(np.delete(v, i)) for i in range(len(v))])
+        np.testing.assert_allclose([scores[0.5][probe][g] for g in people], v - 0.5 * others, atol=1e-9)

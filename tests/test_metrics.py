@@ -370,8 +370,12 @@ def test_fused_score_files_are_the_fusion_of_their_rows(tmp_path):
     assert result.exit_code == 0, result.output
     f = read_score_matrix(tmp_path / "f.txt")
     assert list(f.probe_labels) == labels and list(f.gallery_ids) == gallery
-    expected = np.stack([fuse(np.stack([A[i], B[i]]), "sum", "z-score")[0] for i in range(16)])
-    np.testing.assert_allclose(f.S, expected, rtol=1e-12)
+    plain = np.stack([fuse(np.stack([A[i], B[i]]), "sum", "z-score")[0] for i in range(16)])
+    np.testing.assert_allclose(f.S, plain, rtol=1e-12)
+    # --cohort: less that share of the best other person's fused score (the fusion method's `cohort`)
+    assert run("--out", str(tmp_path / "f5.txt"), "--cohort", "0.5").exit_code == 0
+    others = np.array([[np.max(np.delete(row, j)) for j in range(8)] for row in plain])
+    np.testing.assert_allclose(read_score_matrix(tmp_path / "f5.txt").S, plain - 0.5 * others, rtol=1e-12)
     hits = lambda S: np.mean(S.argmax(axis=1) == np.arange(16) % 8)
     assert hits(f.S) >= max(hits(A), hits(B))  # on this draw the fusion is right where either is
 

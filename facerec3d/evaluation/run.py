@@ -102,8 +102,10 @@ def _evaluate(engine: Engine, matcher, training: dict, dataset, sp, data: str | 
         if outcome.face is None:
             failed.append({"path": str(recs[i].path), "reason": outcome.error,
                            "role": "gallery" if i in sp.gallery else "probe"})
-        else:
-            faces[i] = outcome.face
+        else:  # the face named as the protocol names it (a frame's meta may not know its person: PNG frames)
+            face = outcome.face
+            faces[i] = face if face.meta.subject == recs[i].subject else \
+                face.replace(meta=face.meta.replace(subject=recs[i].subject))
     timings["preprocess_s"] = time.perf_counter() - t0
     for kind, chosen in (("computed", [o for o in outcomes if not o.cached]), ("cached", [o for o in outcomes if o.cached])):
         timings[f"preprocess_{kind}"] = len(chosen)

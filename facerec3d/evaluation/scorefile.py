@@ -232,23 +232,24 @@ def read_score_matrix(path: str | Path, fmt: str = "bob4", higher_is_better: boo
 
 def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str = "sum",
                      normalisation: str = "z-score", weights: Sequence[float] = (),
-                     top: int = 0) -> tuple[ScoreMatrix, int]:
+                     top: int = 0, cohort: float = 0.0) -> tuple[ScoreMatrix, int]:
     """Score-level fusion of several systems' score files (chapter §8.10; `matching.normalisation.fuse`, what the
     `fusion` method computes from its members' scores): each probe's scores of each file normalised over the
-    gallery templates it was compared with, then combined by `rule` (InputError when the files share none). Probes
+    gallery templates it was compared with, then combined by `rule`, and `cohort` × the best other person's fused
+    score taken off (`normalisation.minus_best_other`; 0: the plain combination) (InputError when the files share none). Probes
     are matched by label, templates by (subject, label). Returns the fused matrix and the number of comparisons left out because some file lacks them
     (a comparison is fused only where every file has it; a score of −inf, a match not found, counts as that
     probe's worst). Raises InputError naming the file when the files disagree on a probe's subject, and the fusion
     method's errors for its settings (SettingsError naming `weights` or `top` out of range, InputError otherwise:
     weights with a rule that ignores them too)."""
     from facerec3d.matching.fusion import FusionConfig
-    from facerec3d.matching.normalisation import fuse
+    from facerec3d.matching.normalisation import fuse, minus_best_other
 
     if len(paths) < 2:
         raise InputError("fusion needs at least two score files")
     try:  # the checks of the fusion method's settings (ranges: SettingsError naming the field)
         FusionConfig(members=tuple(map(str, paths)), normalisation=normalisation, rule=rule, weights=tuple(weights),
-                     top=top)
+                     top=top, cohort=cohort)
     except SettingsError:
         raise
     except ValueError as e:
@@ -278,6 +279,7 @@ def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str =
     for i in np.flatnonzero(made.any(axis=1)):
         cols = np.flatnonzero(made[i])
         score, tiebreak = fuse(stack[:, i, cols], rule, normalisation, weights, top)
+        score = minus_best_other(score, np.asarray(first.gallery_ids)[cols], cohort)
         # consensus: whole votes, ties broken by the Borda count (below one vote), as the matchers rank
         fused[i, cols] = score if tiebreak is None else score + tiebreak / (tiebreak.max() + 1.0)
     left_out = sum(int((~np.isnan(m.S)).sum()) for m in mats) - len(mats) * int(made.sum())

@@ -21,6 +21,11 @@ Flynn 2008 ("A region ensemble for 3-D face recognition"): Borda count
 only: their modified Borda) and consensus voting (the number of sources
 that rank a template first; the Borda count breaks ties).
 
+After the rule, `minus_best_other` may subtract from each template's fused score a share of the best fused score
+among the *other* people's templates (the best impostor as a cohort): the people keep their order for every
+probe, so no rank moves, and a score says how far a person stands above everyone else, which is what a verification threshold
+needs (the "second best" of open-set identification).
+
 `matching.fusion.FusionMatcher` ("fusion") fuses member methods with these;
 `matching.regions.RegionICPMatcher` fuses a face's regions.
 """
@@ -105,6 +110,24 @@ def fuse(scores: np.ndarray, rule: str = "sum", normalisation: str = "z-score",
     if rule == "product":
         return N.prod(axis=0), None
     return np.asarray(weights, dtype=np.float64) @ N, None
+
+
+def minus_best_other(fused: np.ndarray, subjects: np.ndarray, share: float) -> np.ndarray:
+    """`fused` (n,) less `share` × the best score among templates of other subjects than each one's (`subjects`
+    (n,): any keys, equal for one person's templates); unchanged where no other subject has a finite score (a
+    gallery of one person) or `share` is 0. For a probe, the people keep their order (each by their best
+    template), and each person's templates theirs: no subject's rank moves."""
+    fused = np.asarray(fused, dtype=np.float64)
+    if share == 0 or len(fused) == 0:
+        return fused
+    keys, person = np.unique(np.asarray(subjects), return_inverse=True)
+    finite = np.where(np.isfinite(fused), fused, -np.inf)
+    best = np.full(len(keys), -np.inf)
+    np.maximum.at(best, person, finite)
+    order = np.argsort(best)[::-1]
+    first, second = best[order[0]], best[order[1]] if len(keys) > 1 else -np.inf
+    other = np.where(person == order[0], second, first)
+    return np.where(np.isfinite(other), fused - share * other, fused)
 
 
 def check_fusion(rule: str, normalisation: str, weights: Sequence[float], n_sources: int) -> None:
