@@ -181,12 +181,13 @@ class FusionMatcher(GalleryNormalised, Matcher[list]):
         return sum(shard_rows(m) for m in self.members) + 1
 
     def partial_scores(self, probe: FaceScan | list, templates: Sequence[Template]) -> np.ndarray:
-        """The members' shard scores, stacked, and a last row naming each template's subject (`subject_key`):
-        (Σ members' shard_rows + 1, n)."""
+        """The members' shard scores, stacked, and a last row naming each template's subject (`subject_key`; zeros
+        when `cohort` is 0, which never reads it): (Σ members' shard_rows + 1, n)."""
         p = self._probe(probe, templates)
         parts = [unpack(t) for t in templates]
         rows = [shard_scores(m, p[k], [q[k] for q in parts]) for k, m in enumerate(self.members)]
-        return np.concatenate([*rows, [[subject_key(t.subject) for t in templates]]])
+        keys = [subject_key(t.subject) for t in templates] if self.config.cohort else np.zeros(len(templates))
+        return np.concatenate([*rows, [keys]])
 
     def merge_scores(self, partial: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """Each member's scores merged over the whole gallery, then normalised and fused, and the best other
