@@ -28,7 +28,8 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from facerec3d.datasets.synthetic import FaceScanner, ScanSpec, export_surface, random_frame, sensor_profile  # noqa: E402
+from facerec3d.datasets.synthetic import (FaceScanner, ScanSpec, export_surface, random_frame,  # noqa: E402
+                                          sensor_profile)
 from facerec3d.errors import FailureToAcquire  # noqa: E402
 from facerec3d.io import load_scan, save_scan  # noqa: E402
 from facerec3d.matching.registry import make_matcher  # noqa: E402

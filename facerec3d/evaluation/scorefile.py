@@ -236,7 +236,8 @@ def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str =
     """Score-level fusion of several systems' score files (chapter §8.10; `matching.normalisation.fuse`, what the
     `fusion` method computes from its members' scores): each probe's scores of each file normalised over the
     gallery templates it was compared with, then combined by `rule`, and `cohort` × the best other person's fused
-    score taken off (`normalisation.minus_best_other`; 0: the plain combination) (InputError when the files share none). Probes
+    score taken off (`normalisation.minus_best_other`; 0: the plain combination); InputError when the files share
+    none. Probes
     are matched by label, templates by (subject, label). Returns the fused matrix and the number of comparisons left out because some file lacks them
     (a comparison is fused only where every file has it; a score of −inf, a match not found, counts as that
     probe's worst). Raises InputError naming the file when the files disagree on a probe's subject, and the fusion

@@ -22,9 +22,9 @@ only: their modified Borda) and consensus voting (the number of sources
 that rank a template first; the Borda count breaks ties).
 
 After the rule, `minus_best_other` may subtract from each template's fused score a share of the best fused score
-among the *other* people's templates (the best impostor as a cohort): the people keep their order for every
-probe, so no rank moves, and a score says how far a person stands above everyone else, which is what a verification threshold
-needs (the "second best" of open-set identification).
+among the *other* people's templates (the best impostor as a cohort; the "second best" of open-set
+identification): the people keep their order for every probe, so no rank moves; a claim by an enrolled impostor
+scores lower, one by a stranger does not (docs/methods.md).
 
 `matching.fusion.FusionMatcher` ("fusion") fuses member methods with these;
 `matching.regions.RegionICPMatcher` fuses a face's regions.

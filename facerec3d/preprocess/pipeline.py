@@ -162,7 +162,8 @@ class Preprocessor:
 
     def __call__(self, scan: FaceScan) -> FaceScan:
         """The preprocessed face of `scan`, computed with one BLAS thread (`workers.one_blas_thread`: its small
-        linear algebra runs slower on more, many times slower on a busy machine); the caller's setting returns after."""
+        linear algebra runs slower on more, many times slower on a busy machine); the caller's setting returns
+        after."""
         if not isinstance(scan, FaceScan):
             raise InputError(f"Preprocessor takes a FaceScan (facerec3d.io.load_scan reads a file), not "
                              f"{type(scan).__name__}")
