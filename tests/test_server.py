@@ -899,3 +899,48 @@ def test_calibrate_takes_a_single_scan_as_a_list_of_one(tmp_path):
         assert c.calibrate(one, "s0") == {"value": 0.5}
     for body in sent:
         assert body.count(b'name="scan"') == 1 and body.count(b'name="subject"') == 1 and b"\r\n\r\ns0\r\n" in body
+
+
+def test_the_workers_warm_up_before_the_service_answers_and_a_failed_warm_up_only_warns(tmp_path, monkeypatch):
+    """A fresh install's first enrolment took ~20 s and its first identification ~7 s (Numba compiling the kernels
+    in the worker): `serve` now runs a synthetic frame through each worker first (`app.warm`). The gallery is not
+    touched; a warm-up that fails is one warning line and the service still starts."""
+    import facerec3d.server.live as live_module
+    from facerec3d.server.app import warm
+    from facerec3d.server.live import LiveGallery
+
+    gallery = tmp_path / "g.sqlite"
+    make_gallery(gallery)
+    live = LiveGallery(gallery, jobs=1)
+    try:
+        before = (live.version, len(live.entries))
+        import facerec3d.server.jobs as jobs
+
+        ran = []
+        real = jobs.Preprocessor
+
+        class Spy(real):  # the warm-up preprocesses a frame with the gallery's settings (in this process: jobs=1)
+            def __call__(self, scan):
+                face = super().__call__(scan)
+                ran.append((self.config == live.config, face.n_points))
+                return face
+
+        monkeypatch.setattr(jobs, "Preprocessor", Spy)
+        said = []
+        warm(live, said.append)
+        assert len(ran) == 1 and ran[0][0] and ran[0][1] > 1000, ran
+        monkeypatch.setattr(jobs, "Preprocessor", real)
+        assert said[0] == "warming up 1 worker (on a first run this compiles facerec3d's kernels, ~30 s) ..."
+        assert said[1].startswith("warmed up in ") and len(said) == 2, said
+        assert (live.version, len(live.entries)) == before
+
+        def broken(*args):
+            raise RuntimeError("no face in the synthetic frame")
+
+        monkeypatch.setattr(live_module, "warm_up", broken)
+        said.clear()
+        warm(live, said.append)
+        assert said[1] == ("warning: the warm-up failed (RuntimeError: no face in the synthetic frame); the first "
+                           "requests will be slower"), said
+    finally:
+        live.close()

@@ -900,6 +900,19 @@ def bind_address(host: str, port: int) -> socket.socket:
     return sock
 
 
+def warm(live: LiveGallery, echo=print) -> None:
+    """The workers' warm-up (`LiveGallery.warm_up`) before the service answers, said in a line; a failure is a
+    warning line and the service starts all the same (its first requests are then slow, not wrong)."""
+    echo(f"warming up {live.engine.workers} worker{'s' * (live.engine.workers != 1)} (on a first run this compiles "
+         "facerec3d's kernels, ~30 s) ...")
+    try:
+        seconds = live.warm_up()
+    except Exception as e:  # noqa: BLE001 - any failure of a synthetic frame: say it, serve anyway
+        echo(f"warning: the warm-up failed ({type(e).__name__}: {e}); the first requests will be slower")
+        return
+    echo(f"warmed up in {max(seconds):.1f} s")
+
+
 def serve(gallery: str | Path, keys: str | Path, host: str = "127.0.0.1", port: int = 8000, jobs: int | None = None,
           scheduler: str | None = None, method: str | None = None, options: dict | None = None, config=None,
           settings: ServiceSettings | None = None, max_points: int = 5_000_000, audit: str | Path | None = None,
@@ -927,6 +940,7 @@ def serve(gallery: str | Path, keys: str | Path, host: str = "127.0.0.1", port: 
                            AuditLog(audit if audit is not None else Path(str(gallery) + ".audit.jsonl")), max_points)
         service = Service(live, key_file, settings)
         try:
+            warm(live, echo)
             server = uvicorn.Server(uvicorn.Config(create_app(service), host=host, port=port, log_level="warning",
                                                    access_log=False, ssl_certfile=ssl_certfile,
                                                    ssl_keyfile=ssl_keyfile,

@@ -61,6 +61,22 @@ def ready(i: int) -> int:
     return os.getpid()
 
 
+def warm_up(i: int, config: PreprocessConfig, matcher: Matcher) -> float:
+    """What a worker does once before the service answers (seconds): a synthetic Kinect v2 frame preprocessed with
+    the gallery's settings, enrolled and matched against itself, so that the first client's request does not wait
+    for Numba to compile (or load) facerec3d's kernels and a model's session to open: ~20 s for the first
+    enrolment and ~7 s for the first identification after an install on 2 cores, before this. A failure raises
+    (the service says so in one line and serves all the same)."""
+    from facerec3d.datasets.synthetic import quick_scan, sensor_profile
+
+    t0 = time.perf_counter()
+    face = Preprocessor(config)(quick_scan(i, scanner=sensor_profile("kinect-v2")).scan)
+    template = matcher.enroll(face)
+    template.subject, template.scan_id = "warm-up", "warm-up"
+    matcher.scores(matcher.prepare(face), [template])
+    return time.perf_counter() - t0
+
+
 def read_upload(upload: Upload, max_points: int) -> FaceScan:
     """The scan in an upload; `Rejected` 422 (unreadable: the reader's reason) or 413 (over `max_points`)."""
     if upload.suffix not in READERS:

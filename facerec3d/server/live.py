@@ -51,7 +51,7 @@ from facerec3d.gallery.store import AlreadyEnrolled, Entry, GalleryError, Galler
 from facerec3d.matching.base import rank
 from facerec3d.matching.registry import make_matcher
 from facerec3d.preprocess.pipeline import PreprocessConfig
-from facerec3d.server.jobs import ready
+from facerec3d.server.jobs import ready, warm_up
 
 
 class Conflict(FaceRec3DError):
@@ -145,6 +145,11 @@ class LiveGallery:
         self._stop = threading.Event()
         self._watchdog = threading.Thread(target=self._watch, name="facerec3d-watchdog", daemon=True)
         self._watchdog.start()
+
+    def warm_up(self) -> list[float]:
+        """Each worker preprocesses, enrols and matches a synthetic frame once (`jobs.warm_up`), so that the first
+        request finds facerec3d's kernels compiled; the seconds each took. The gallery is not touched."""
+        return self.engine.map(warm_up, range(self.engine.workers), self.config, self.matcher)
 
     # ------------------------------------------------------------------ dead workers (watchdog thread)
     WATCH_S = 0.5  # how often the worker processes are looked at
