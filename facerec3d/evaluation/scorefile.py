@@ -277,10 +277,11 @@ def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str =
         raise InputError(f"{paths[1]}: shares no comparison with {paths[0]} (other probes or gallery faces): "
                          "nothing to fuse")
     fused = np.full(made.shape, np.nan)
+    people = np.asarray(first.gallery_ids)
     for i in np.flatnonzero(made.any(axis=1)):
         cols = np.flatnonzero(made[i])
         score, tiebreak = fuse(stack[:, i, cols], rule, normalisation, weights, top)
-        score = minus_best_other(score, np.asarray(first.gallery_ids)[cols], cohort)
+        score = minus_best_other(score, people[cols], cohort)
         # consensus: whole votes, ties broken by the Borda count (below one vote), as the matchers rank
         fused[i, cols] = score if tiebreak is None else score + tiebreak / (tiebreak.max() + 1.0)
     left_out = sum(int((~np.isnan(m.S)).sum()) for m in mats) - len(mats) * int(made.sum())

@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -65,6 +66,7 @@ def _without_defaults(options: Mapping[str, Any], names: Mapping[str, Any], defa
     return out
 
 
+@lru_cache(maxsize=65536)  # the same gallery's subjects, probe after probe
 def subject_key(subject: str) -> float:
     """A subject's name as a number that shards carry with their scores (a 52-bit hash: exact in a float64, equal
     for equal names, two names alike by chance once in ~10^15)."""
