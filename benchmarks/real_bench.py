@@ -300,7 +300,7 @@ def run_anchor(anchor: str, gallery_rows: list, probe_rows: list, intr: dict, jo
     S = np.array([r for r, _ in rows], dtype=float).reshape(len(probes), len(gallery))
     cpu_s = sum(c for _, c in rows)
     n = S.size
-    return {"S": S, "failed_probe": np.array([p is None for p in probes]),
+    return {"S": S, "S_strangers": S, "failed_probe": np.array([p is None for p in probes]),  # raw ICP errors
             "failed_gallery": np.array([g is None for g in gallery]),
             "points": float(np.median([len(f) for f in gallery + probes if f is not None])),
             "timings": {"preprocess_s": prep_s, "frames": len(probes) + len(gallery), "match_s": match_s,
@@ -443,19 +443,26 @@ def score_file_system(path: Path, data: Path, gallery_rows: list, probe_rows: li
     acquire, a gallery subject never claimed failed to enrol."""
     from facerec3d.evaluation.scorefile import read_score_rows
 
-    rows = read_score_rows(path)
     probe_at = {(r["subject"], Path(r["path"]).relative_to(data).as_posix()): i for i, r in enumerate(probe_rows)}
     gallery_at = {r["subject"]: j for j, r in enumerate(gallery_rows)}
     if len(gallery_at) != len(gallery_rows):
         raise ValueError("the manifest has several gallery frames for one subject; scores.txt cannot tell them apart")
-    S = np.full((len(probe_rows), len(gallery_rows)), np.nan)
-    for claimed, real, label, score in zip(*rows):
-        i, j = probe_at.get((real, label)), gallery_at.get(claimed)
-        if i is None or j is None:
-            raise ValueError(f"{path}: row {claimed} {real} {label} matches no manifest probe/gallery frame")
-        S[i, j] = score
+
+    def matrix(file: Path) -> np.ndarray:
+        S = np.full((len(probe_rows), len(gallery_rows)), np.nan)
+        for claimed, real, label, score in zip(*read_score_rows(file)):
+            i, j = probe_at.get((real, label)), gallery_at.get(claimed)
+            if i is None or j is None:
+                raise ValueError(f"{file}: row {claimed} {real} {label} matches no manifest probe/gallery frame")
+            S[i, j] = score
+        return S
+
+    S = matrix(path)
+    strangers = path.with_name("scores.strangers.txt")  # evaluate's, beside its scores.txt (methods normalised
+    #   over the gallery: impostor pairs scored as strangers' claims)
     return {"S": np.where(np.isnan(S), -np.inf, S), "failed_probe": np.isnan(S).all(axis=1),
-            "failed_gallery": np.isnan(S).all(axis=0)}
+            "failed_gallery": np.isnan(S).all(axis=0),
+            "S_strangers": matrix(strangers) if path.name == "scores.txt" and strangers.is_file() else None}
 
 
 def run_method(method: str, data: Path, gallery_rows: list, probe_rows: list, out: Path, jobs: int,
@@ -473,6 +480,8 @@ def run_method(method: str, data: Path, gallery_rows: list, probe_rows: list, ou
                        cache=cache, options=options, train=train, config=config or PreprocessConfig())
     wall_s = time.perf_counter() - t0
     system = score_file_system(out / label / "scores.txt", data, gallery_rows, probe_rows)
+    if system["S_strangers"] is None and "strangers" not in metrics:  # scores that do not depend on the gallery:
+        system["S_strangers"] = system["S"]                           # a stranger's claim scores as anyone's
     if metrics.get("failures_to_enrol", 0) != int(system["failed_gallery"].sum()):
         print(f"  note: {method}: metrics.json says {metrics.get('failures_to_enrol')} failures to enrol, "
               f"scores.txt shows {int(system['failed_gallery'].sum())} gallery subjects never scored")
@@ -489,12 +498,14 @@ def run_method(method: str, data: Path, gallery_rows: list, probe_rows: list, ou
 
 
 def identification_metrics(S, probe_subjects, gallery_subjects, probe_poses, failed_probe,
-                           failed_gallery=None) -> dict:
+                           failed_gallery=None, S_strangers=None) -> dict:
     """The benchmark's figures from a (probes x gallery) score matrix (higher = more similar).
 
     Failed probes / gallery frames (masks) and -inf / NaN entries are comparisons not made. Rank-1
     figures are over every probe given (a failure, an unenrolled subject or a tie at the top is a
-    miss); EER and VR at FMR 0.1 % over every pair, a pair not made scoring -inf (rejected)."""
+    miss); EER and VR at FMR 0.1 % over every pair, a pair not made scoring -inf (rejected).
+    `eer_strangers`: the EER with each impostor pair's score from `S_strangers` (a method normalised over
+    the gallery, its impostors scored as strangers' claims: evaluate's scores.strangers.txt), None without."""
     S = np.array(S, dtype=float)
     ps, gs = np.asarray(probe_subjects), np.asarray(gallery_subjects)
     poses = np.asarray(probe_poses)
@@ -518,22 +529,33 @@ def identification_metrics(S, probe_subjects, gallery_subjects, probe_poses, fai
            "rank1_front_burned": rate(np.isin(poses, ["front", "burned"]))}
     for pose in POSES:
         out[f"rank1_{pose}"] = rate(poses == pose)
-    y, s = genuine.ravel(), S.ravel()
-    out["eer"] = out["vr_at_fmr_0.001"] = None
-    if y.any() and (~y).any():
-        finite = s[np.isfinite(s)]
-        floor = (finite.min() - 1.0) if finite.size else 0.0
-        fmr, tar, _ = roc_curve(y, np.where(np.isfinite(s), s, floor))
-        fnmr = 1.0 - tar
-        k = int(np.flatnonzero(fnmr <= fmr)[0])  # first point where FNMR has fallen to FMR
-        if k == 0:
-            out["eer"] = float(fmr[0])
-        else:  # linear interpolation of the crossing between points k-1 and k
-            d0, d1 = fnmr[k - 1] - fmr[k - 1], fnmr[k] - fmr[k]
-            t = d0 / (d0 - d1) if d0 != d1 else 0.0
-            out["eer"] = float(fmr[k - 1] + t * (fmr[k] - fmr[k - 1]))
-        out["vr_at_fmr_0.001"] = float(tar[fmr <= 1e-3].max())
+    out["eer"], out["vr_at_fmr_0.001"] = verification(genuine.ravel(), S.ravel())
+    out["eer_strangers"] = None
+    if S_strangers is not None:
+        T = np.array(S_strangers, dtype=float)
+        T[np.isnan(T)] = -np.inf
+        T[failed_probe] = -np.inf
+        T[:, failed_gallery] = -np.inf
+        out["eer_strangers"] = verification(genuine.ravel(), np.where(genuine, S, T).ravel())[0]
     return out
+
+
+def verification(y: np.ndarray, s: np.ndarray) -> tuple[float | None, float | None]:
+    """(EER, VR at FMR 0.1 %) of scores s, genuine where y, a score of -inf rejected (None without both kinds)."""
+    if not (y.any() and (~y).any()):
+        return None, None
+    finite = s[np.isfinite(s)]
+    floor = (finite.min() - 1.0) if finite.size else 0.0
+    fmr, tar, _ = roc_curve(y, np.where(np.isfinite(s), s, floor))
+    fnmr = 1.0 - tar
+    k = int(np.flatnonzero(fnmr <= fmr)[0])  # first point where FNMR has fallen to FMR
+    if k == 0:
+        eer = float(fmr[0])
+    else:  # linear interpolation of the crossing between points k-1 and k
+        d0, d1 = fnmr[k - 1] - fmr[k - 1], fnmr[k] - fmr[k]
+        t = d0 / (d0 - d1) if d0 != d1 else 0.0
+        eer = float(fmr[k - 1] + t * (fmr[k] - fmr[k - 1]))
+    return eer, float(tar[fmr <= 1e-3].max())
 
 
 def subject_groups(subjects: list[str]) -> dict[str, set]:
@@ -550,14 +572,16 @@ def group_metrics(system: dict, group: set, probe_rows: list, gallery_rows: list
                                   [r["subject"] for r, k in zip(probe_rows, pi) if k],
                                   [r["subject"] for r, k in zip(gallery_rows, gi) if k],
                                   [r["pose"] for r, k in zip(probe_rows, pi) if k],
-                                  system["failed_probe"][pi], system["failed_gallery"][gi])
+                                  system["failed_probe"][pi], system["failed_gallery"][gi],
+                                  None if system.get("S_strangers") is None else system["S_strangers"][np.ix_(pi, gi)])
 
 
 # -------------------------------------------------------------------------------------------- report
 
 
 COLUMNS = [("fta", "FTA/FTE"), ("rank1_front_burned", "R1 front+burned"), ("rank1_all", "R1 all"),
-           *[(f"rank1_{p}", p) for p in POSES], ("eer", "EER"), ("vr_at_fmr_0.001", "VR@0.1%")]
+           *[(f"rank1_{p}", p) for p in POSES], ("eer", "EER"), ("eer_strangers", "EER strangers"),
+           ("vr_at_fmr_0.001", "VR@0.1%")]
 
 
 def pct(x) -> str:

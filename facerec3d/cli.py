@@ -641,6 +641,10 @@ def _print_metrics(m: dict) -> None:
     click.echo("thresholds (score >= t accepts): " + ", ".join(
         f"{name} {format_value('', m.get(key))}" for name, key in
         (("EER", "threshold_at_eer"), ("FMR 0.1%", "threshold_at_far_0.001"), ("FMR 1%", "threshold_at_far_0.01"))))
+    if strangers := m.get("strangers"):  # a method normalised over the gallery: a stranger's claim scores higher
+        click.echo("thresholds with impostors scored as strangers' claims (people not enrolled; for verify): " + ", ".join(
+            f"{name} {format_value('', strangers.get(key))}" for name, key in
+            (("EER", "threshold_at_eer"), ("FMR 0.1%", "threshold_at_far_0.001"), ("FMR 1%", "threshold_at_far_0.01"))))
     t = m.get("timings", {})
     if t:
         click.echo(f"gallery {m['n_gallery']}, failures to enrol {m.get('failures_to_enrol', 0)}; "

@@ -356,3 +356,59 @@ def test_evaluate_takes_the_best_other_person_off_as_identify_does(tmp_path):
         v = np.array([plain[g] for g in people])
         others = np.array([np.max(np.delete(v, i)) for i in range(len(v))])
         np.testing.assert_allclose([scores[0.5][probe][g] for g in people], v - 0.5 * others, atol=1e-9)
+
+
+def test_evaluate_scores_impostors_also_as_strangers_claims(tmp_path):
+    """A method normalised over the gallery scores an enrolled impostor among his own entries (whose high scores
+    push the others down) but a stranger among entries none of which is his: `evaluate` gives both. Each impostor
+    pair of scores.strangers.txt is the members' raw scores fused over the gallery without the probe's subject
+    (computed here from the members' own runs); metrics.json's `strangers` figures take their impostors from it and
+    their genuine scores from scores.txt; a method whose scores do not depend on the gallery has one set."""
+    import collections
+    import json
+
+    from click.testing import CliRunner
+
+    from facerec3d.cli import main
+
+    run = CliRunner()
+    data = tmp_path / "frames"
+    assert run.invoke(main, ["synth", str(data), "--sensor", "kinect-v2", "--format", "png", "--subjects", "5",
+                             "--scans", "2"]).exit_code == 0
+    cfg = tmp_path / "f.toml"
+    cfg.write_text('members = ["icp", "embedding"]\n')
+
+    def scores(folder, name="scores.txt"):
+        S = collections.defaultdict(dict)
+        for line in (folder / name).read_text().splitlines():
+            g, real, p, s = line.split()
+            S[(real, p)][g] = float(s)
+        return S
+
+    runs = {}
+    for method in ("fusion", "icp", "embedding"):
+        r = run.invoke(main, ["evaluate", str(data), "--method", method, "--out", str(tmp_path / method), "--jobs",
+                              "1", "--cache", str(tmp_path / "cache"), "--bootstrap", "0",
+                              *(["--method-config", str(cfg)] if method == "fusion" else [])])
+        assert r.exit_code == 0, r.output
+        runs[method] = json.loads((tmp_path / method / "metrics.json").read_text())
+    assert "strangers" not in runs["icp"] and not (tmp_path / "icp" / "scores.strangers.txt").exists()
+    fused, strangers = scores(tmp_path / "fusion"), scores(tmp_path / "fusion", "scores.strangers.txt")
+    members = [scores(tmp_path / m) for m in ("icp", "embedding")]
+    assert len(fused) == 5 and set(strangers) == set(fused)
+    higher = 0
+    for (real, probe), row in strangers.items():
+        others = sorted(row)
+        assert real not in others and sorted([*others, real]) == sorted(fused[(real, probe)])
+        expected, _ = fuse(np.array([[m[(real, probe)][g] for g in others] for m in members]), "sum", "z-score")
+        np.testing.assert_allclose([row[g] for g in others], expected, atol=1e-9)
+        higher += np.mean([row[g] for g in others]) > np.mean([fused[(real, probe)][g] for g in others])
+    assert higher == 5  # without the probe's own high score in the cohort, every impostor's z-score rises
+    st, plain = runs["fusion"]["strangers"], runs["fusion"]
+    assert (st["n_genuine"], st["n_impostor"]) == (plain["n_genuine"], plain["n_impostor"]) == (5, 20)
+    assert st["rank1"] is None and st["eer"] is not None
+    genuine = np.array([row[real] for (real, _), row in fused.items()])
+    impostor = np.array([s for row in strangers.values() for s in row.values()])
+    from facerec3d.evaluation.metrics import eer
+
+    assert st["eer"] == pytest.approx(eer(genuine, impostor))

@@ -3,6 +3,7 @@
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -37,3 +38,17 @@ def test_training_on_the_tuning_half_never_lists_a_held_out_person(tmp_path):
     listed = [r.split(",") for r in rows[1:]]
     assert {s for _, s, _ in listed} == {"s000", "s002"} and len(listed) == 4  # the even-index (tuning) half
     assert all(Path(p).is_absolute() and Path(p).parent.name == s for p, s, _ in listed)
+
+
+def test_the_strangers_eer_takes_impostors_from_the_strangers_scores_and_genuine_ones_from_the_scores():
+    """Two probes of two people: as scored (impostors 0.1, 0.2 below both genuine 0.9, 0.8) no error; scored as
+    strangers' claims one impostor (0.85) outscores a genuine score (0.8): one error of two on each side at best.
+    The strangers matrix's genuine entries (NaN here, as scores.strangers.txt has none) are never read."""
+    S = np.array([[0.9, 0.1], [0.2, 0.8]])
+    T = np.array([[np.nan, 0.3], [0.85, np.nan]])
+    args = (["a", "b"], ["a", "b"], ["front", "left"], [False, False])
+    m = real_bench.identification_metrics(S, *args, S_strangers=T)
+    assert m["eer"] == 0.0 and m["rank1_all"] == 1.0
+    assert m["eer_strangers"] == pytest.approx(0.5)
+    assert real_bench.identification_metrics(S, *args)["eer_strangers"] is None
+    assert real_bench.identification_metrics(S, *args, S_strangers=S)["eer_strangers"] == m["eer"]

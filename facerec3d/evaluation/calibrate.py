@@ -34,7 +34,7 @@ from facerec3d.gallery.engine import Engine
 from facerec3d.gallery.service import content_hash
 from facerec3d.gallery.store import GalleryError, GalleryStore
 from facerec3d.evaluation.metrics import _eer, roc
-from facerec3d.matching.base import merge_shard_scores
+from facerec3d.matching.base import scores_over
 
 DEFAULT_FMR = 0.01  # the false-match rate the recorded threshold keeps (1 %: one impostor in a hundred accepted)
 OWN_SCANS = "the gallery's own scans"  # a threshold record's "data" when calibrated on the gallery itself (enroll's)
@@ -63,12 +63,8 @@ def pair_scores(matcher, rows: np.ndarray, own: np.ndarray, same: np.ndarray) ->
     scores came out lower than a stranger's, and a gallery of three scans per person calibrated a threshold that
     let 44 % of strangers' claims through at a stated FMR of 0.56 %. Other methods' scores do not depend on the
     cohort: the same either way."""
-    def over(cohort: np.ndarray) -> np.ndarray:
-        return merge_shard_scores(matcher, rows[:, cohort])[0] if cohort.any() else np.zeros(0)
-
-    genuine = over(~own)[same[~own]]
-    impostor = over(~own & ~same)
-    return genuine, impostor
+    genuine, impostor = ~own & same, ~own & ~same
+    return scores_over(matcher, rows, ~own)[genuine], scores_over(matcher, rows, impostor)[impostor]
 
 
 def calibration_scores(store: GalleryStore, records: Sequence[ScanRecord], *, engine: Engine,

@@ -127,7 +127,7 @@ SECTION_TITLES = {"options": "Method options", "preprocess": "Preprocessing conf
                   "provenance": "Provenance (the rerun command repeats this evaluation)",
                   "quality_median": "Scan quality (median)", "cascade": "Cascade"}
 # metrics.json entries that have their own table (or none) rather than a row of the Run table
-STRUCTURED = frozenset({"subsets", "masks", "timings", "failed_scans", "scan_quality", "bootstrap"})
+STRUCTURED = frozenset({"subsets", "masks", "strangers", "timings", "failed_scans", "scan_quality", "bootstrap"})
 
 Table = tuple  # (heading, column names, rows of cells[, "wrap": long cells may wrap])
 
@@ -164,9 +164,14 @@ def with_interval(key: str, figures: Mapping) -> str:
     return f"{value} ({format_interval(key, ci)})" if ci else value
 
 
+STRANGERS = "all probes, impostors as strangers"  # the probe set of metrics.json's `strangers` (see write_run)
+
+
 def probe_sets(metrics: Mapping) -> dict[str, Mapping]:
-    """{name: figures} of all probes, each subset and each comparison mask (named 'mask ROC I' etc.)."""
-    return {"all probes": metrics, **(metrics.get("subsets") or {}),
+    """{name: figures} of all probes, the strangers' claims (`STRANGERS`, methods normalised over the gallery),
+    each subset and each comparison mask (named 'mask ROC I' etc.)."""
+    return {"all probes": metrics, **({STRANGERS: metrics["strangers"]} if metrics.get("strangers") else {}),
+            **(metrics.get("subsets") or {}),
             **{f"mask {name}": m for name, m in (metrics.get("masks") or {}).items()}}
 
 
@@ -358,6 +363,7 @@ def write_run(
     seed: int = 0,
     unenrolled: Sequence[str] = (),
     mateless=None,
+    strangers=None,
 ) -> dict:
     """Evaluate score matrix S (higher = more similar) and write the run folder.
 
@@ -373,7 +379,11 @@ def write_run(
     intervals (0: none), drawn with numpy.random.default_rng(seed). unenrolled: the subjects whose gallery
     scans all failed to enrol; their probes are misses in the failures-as-misses (*_all) figures. mateless:
     booleans over the processed probes, those whose subject's only gallery scan is the probe itself, not compared
-    (all-vs-all, a person with one scan): searches of a subject not enrolled (see metrics.search).
+    (all-vs-all, a person with one scan): searches of a subject not enrolled (see metrics.search). strangers: the
+    impostor scores of a method normalised over the gallery as strangers' claims meet them (each probe scored over
+    the entries not of its subject, `matching.base.scores_over`; S's shape, the rest ignored): then `strangers` in
+    metrics.json holds the verification figures with those impostors (and S's genuine scores), and
+    scores.strangers.txt those impostor scores.
 
     metrics.json is one JSON object (strict JSON: undefined metrics are null):
       - every entry of ``metrics`` as given (e.g. ``method``, ``protocol``,
@@ -384,7 +394,9 @@ def write_run(
         replace any caller entry of the same name),
       - ``bootstrap``: {replicates, seed, level, unit},
       - ``subsets``: {name: summarize(...) over that subset's probes} and
-        ``masks``: {name: summarize(...) over the masked comparisons}, when given.
+        ``masks``: {name: summarize(...) over the masked comparisons}, when given;
+      - ``strangers``: summarize(...) without identification figures, each impostor pair scored as a stranger's
+        claim (see strangers), when given.
 
     The plots show all probes and each subset (roc_masks.png: the masks). Returns the metrics.json object.
     """
@@ -400,6 +412,11 @@ def write_run(
         if mask.dtype != bool or mask.shape != (S.shape[0],):
             raise ValueError(f"subset {name!r}: need {S.shape[0]} booleans, got {mask.dtype} {mask.shape}")
     pairs = {name: np.asarray(mask) for name, mask in (masks or {}).items()}
+    mated = probe_ids[:, None] == gallery_ids[None, :]
+    if strangers is not None:
+        strangers = np.where(mated, np.nan, np.asarray(strangers, dtype=float))
+        if strangers.shape != S.shape:
+            raise ValueError(f"strangers: need a {S.shape} matrix, got {strangers.shape}")
     for name, mask in pairs.items():
         if mask.dtype != bool or mask.shape != S.shape:
             raise ValueError(f"mask {name!r}: need {S.shape} booleans, got {mask.dtype} {mask.shape}")
@@ -431,10 +448,15 @@ def write_run(
     if pairs:
         result["masks"] = {name: figures(every, 0, S=np.where(m, S, np.nan), identification=False)
                            for name, m in pairs.items()}
+    if strangers is not None:
+        result["strangers"] = figures(every, [label for label, _ in failed] if failed else n_failed,
+                                      S=np.where(mated, S, strangers), identification=False)
     text = json.dumps(result, indent=2, allow_nan=False, default=_jsonable)  # fails before any file is written
 
     out.mkdir(parents=True, exist_ok=True)
     write_scores(out / "scores.txt", S, probe_ids, probe_labels, gallery_ids)
+    if strangers is not None:
+        write_scores(out / "scores.strangers.txt", strangers, probe_ids, probe_labels, gallery_ids)
     (out / "metrics.json").write_text(text + "\n", encoding="utf-8")
     _write_probes(out / "probes.csv", S, probe_ids, probe_labels, gallery_ids, tiebreak, failed, mateless)
     curves = {name: _curves(S[m], probe_ids[m], gallery_ids, tb(m), mateless[m]) for name, m in {"all probes": every, **groups}.items()}

@@ -30,7 +30,8 @@ from facerec3d.evaluation.metrics import BOOTSTRAP
 from facerec3d.evaluation.provenance import provenance
 from facerec3d.evaluation.report import run_folder, write_run
 from facerec3d.gallery.cascade import Cascade, CascadeConfig, check_cascadable
-from facerec3d.gallery.engine import Engine
+from facerec3d.gallery.engine import Engine, merged
+from facerec3d.matching.base import GalleryNormalised, scores_over
 from facerec3d.matching.registry import DEFAULT_METHOD, make_matcher, trained_matcher
 from facerec3d.preprocess.batch import DEFAULT_CACHE
 from facerec3d.preprocess.pipeline import QUALITY_FIELDS, PreprocessConfig, scan_quality
@@ -135,6 +136,11 @@ def _evaluate(engine: Engine, matcher, training: dict, dataset, sp, data: str | 
     t0 = time.perf_counter()
     sharded = engine.load(matcher, gallery)
     rows = []  # GalleryScores, or CascadeScores with the cascade
+    # a method normalised over the gallery scores a stranger's claim (someone not enrolled) over every entry but
+    # the claimant's own, not among them: those impostor scores too, for the strangers' figures (write_run)
+    cohort_normalised = search is None and isinstance(matcher, GalleryNormalised)
+    gallery_subjects = np.array([str(recs[i].subject) for i in enrolled])
+    strangers = []
     batch = 8 * workers  # probes in flight at once (progress is shown per batch)
     batches = [(0, min(workers, len(probes)))] + [(b, min(b + batch, len(probes)))
                                                    for b in range(workers, len(probes), batch)]
@@ -145,7 +151,11 @@ def _evaluate(engine: Engine, matcher, training: dict, dataset, sp, data: str | 
             chunk_faces = [faces[i] for i in probes[a:b]]
             chunk = engine.prepare(matcher, chunk_faces, cascade)
             prepare_s = time.perf_counter() - t1
-            if search is None:
+            if cohort_normalised:
+                for i, r in zip(probes[a:b], sharded.shard_rows(chunk)):
+                    rows.append(merged(matcher, r))
+                    strangers.append(scores_over(matcher, r, gallery_subjects != str(recs[i].subject)))
+            elif search is None:
                 rows += sharded.scores(chunk)
             else:
                 rows += search.search(sharded, chunk, search.screen_scores(engine, chunk_faces))
@@ -207,4 +217,5 @@ def _evaluate(engine: Engine, matcher, training: dict, dataset, sp, data: str | 
                      [recs[i].subject for i in enrolled], info, tiebreak=tiebreak, subsets=masks,
                      subset_failures=subset_failures, failed=[(dataset.label(recs[i]), recs[i].subject) for i in failed_probes],
                      masks=pair_masks, bootstrap=bootstrap, seed=seed,
-                     mateless=mateless, unenrolled=sorted({recs[i].subject for i in sp.gallery if i not in faces} - {recs[i].subject for i in enrolled}))
+                     mateless=mateless, strangers=np.array(strangers).reshape(S.shape) if cohort_normalised else None,
+                     unenrolled=sorted({recs[i].subject for i in sp.gallery if i not in faces} - {recs[i].subject for i in enrolled}))

@@ -110,6 +110,12 @@ def _prepare(face: FaceScan, matcher: Matcher, cascade: CascadeConfig | None) ->
     return Probe(matcher.prepare(face), None if cascade is None else Cascade(cascade).probe_descriptor(face))
 
 
+def merged(matcher: Matcher, rows: np.ndarray) -> GalleryScores:
+    """A probe's scores against the whole gallery from its shards' joined `shard_scores` rows."""
+    scores, tiebreak = merge_shard_scores(matcher, rows)
+    return GalleryScores(scores, np.zeros_like(scores) if tiebreak is None else tiebreak)
+
+
 class Engine(Workers):
     """Workers that run a whole run's work and hold its galleries; `create` makes them, `close` shuts them down."""
 
@@ -231,11 +237,7 @@ class ShardedGallery:
     def scores(self, probes: Sequence[Probe]) -> list[GalleryScores]:
         """(scores (n,), tiebreak (n,)) of each probe against the whole gallery (exhaustive): the shards'
         scores joined, then merged as one gallery (matching.base.merge_shard_scores)."""
-        out = []
-        for rows in self.shard_rows(probes):
-            scores, tiebreak = merge_shard_scores(self.matcher, rows)
-            out.append(GalleryScores(scores, np.zeros_like(scores) if tiebreak is None else tiebreak))
-        return out
+        return [merged(self.matcher, rows) for rows in self.shard_rows(probes)]
 
     def shard_rows(self, probes: Sequence[Probe]) -> list[np.ndarray]:
         """Each prepared probe's `matching.base.shard_scores` against the whole gallery, the shards' joined: what

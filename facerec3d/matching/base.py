@@ -415,3 +415,15 @@ def shard_scores(matcher: Matcher, probe: Any, templates: Sequence[Template]) ->
 def merge_shard_scores(matcher: Matcher, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     """(scores, tiebreak) of a whole gallery from its shards' `shard_scores`, joined."""
     return matcher.merge_scores(rows) if isinstance(matcher, GalleryNormalised) else (rows[0], rows[1])
+
+
+def scores_over(matcher: Matcher, rows: np.ndarray, cohort: np.ndarray) -> np.ndarray:
+    """(n,) the scores of the entries in `cohort` (booleans over the gallery's `shard_scores` columns), merged as a
+    gallery of those entries alone, NaN elsewhere: a method that normalises over the gallery normalises over them. A
+    claim by someone not enrolled (a stranger's) is scored over every entry but the claimant's own, as it meets a
+    gallery that does not hold them (`evaluation.calibrate.pair_scores`, `evaluate`'s strangers' claims)."""
+    cohort = np.asarray(cohort, dtype=bool)
+    out = np.full(cohort.shape, np.nan)
+    if cohort.any():
+        out[cohort] = merge_shard_scores(matcher, rows[:, cohort])[0]
+    return out
