@@ -625,9 +625,13 @@ def _calibrate_remote(client, stats, scans, subjects, fmr, own=False, intrinsics
     click.echo(_threshold_line(r, client.url))
 
 
-def _print_metrics(m: dict) -> None:
+_THRESHOLDS = (("EER", "threshold_at_eer"), ("FMR 0.1%", "threshold_at_far_0.001"), ("FMR 1%", "threshold_at_far_0.01"))
+
+
+def _print_metrics(m: dict, negated: bool = False) -> None:
     """The console table: per probe set and comparison mask, figures with their 95 % intervals; then counts,
-    thresholds, timings and failures."""
+    thresholds (on the score file's own scale: `negated`, distances read as similarities, are turned back),
+    timings and failures."""
     from facerec3d.evaluation.report import format_value, set_table
 
     columns, rows = set_table(m)
@@ -638,13 +642,16 @@ def _print_metrics(m: dict) -> None:
     if m.get("rank1_all") is not None and m.get("rank1_all") != m.get("rank1"):  # failures to acquire or enrol
         click.echo(f"rank-1 over every probe, failures to acquire and probes of unenrolled subjects counted as "
                    f"misses: {format_value('rank1_all', m['rank1_all'])} (the figure to compare systems on)")
-    click.echo("thresholds (score >= t accepts): " + ", ".join(
-        f"{name} {format_value('', m.get(key))}" for name, key in
-        (("EER", "threshold_at_eer"), ("FMR 0.1%", "threshold_at_far_0.001"), ("FMR 1%", "threshold_at_far_0.01"))))
+
+    def thresholds(figures: dict) -> str:
+        def own_scale(t):
+            return -t if negated and t is not None else t
+        return ", ".join(f"{name} {format_value('', own_scale(figures.get(key)))}" for name, key in _THRESHOLDS)
+
+    click.echo(f"thresholds ({'distance <=' if negated else 'score >='} t accepts): {thresholds(m)}")
     if strangers := m.get("strangers"):  # a method normalised over the gallery: a stranger's claim scores higher
-        click.echo("thresholds with impostors scored as strangers' claims (people not enrolled; for verify): " + ", ".join(
-            f"{name} {format_value('', strangers.get(key))}" for name, key in
-            (("EER", "threshold_at_eer"), ("FMR 0.1%", "threshold_at_far_0.001"), ("FMR 1%", "threshold_at_far_0.01"))))
+        click.echo("thresholds with impostors scored as strangers' claims (people not enrolled; for verify): "
+                   + thresholds(strangers))
     t = m.get("timings", {})
     if t:
         click.echo(f"gallery {m['n_gallery']}, failures to enrol {m.get('failures_to_enrol', 0)}; "
@@ -717,12 +724,16 @@ def evaluate(data, method, method_config, train, model, out, overwrite, protocol
             cascade=_cascade_config(cascade, shortlist, screen), intrinsics=intrinsics, bootstrap=bootstrap, seed=seed,
             overwrite=overwrite,  # an earlier run in --out is refused before any work
             echo=_to_stderr)  # what a learnt method learnt from, --train unused
+    if not (m.get("n_processed") and m.get("n_gallery")):  # nothing was compared: the batch failed as a whole
+        failed = m.get("failed_scans") or []
+        for f in failed:
+            click.echo(f"failed ({f['role']}): {f['path']}: {f['reason']}")
+        click.echo(f"error: no comparison made: {m.get('n_gallery', 0)} gallery faces enrolled, "
+                   f"{m.get('n_processed', 0)} probes processed, {len(failed)} scans failed (listed above and in "
+                   f"{Path(out) / 'metrics.json'}: failed_scans)", err=True)
+        sys.exit(1)
     _print_metrics(m)
     click.echo(f"report: {Path(out) / 'report.html'}")
-    if not (m.get("n_processed") and m.get("n_gallery")):  # nothing was compared: the batch failed as a whole
-        click.echo(f"no comparison made: {m.get('n_gallery', 0)} gallery faces enrolled, {m.get('n_processed', 0)} "
-                   f"probes processed (the reasons: {Path(out) / 'probes.csv'})", err=True)
-        sys.exit(1)
 
 
 def _model_or_train(model, train) -> None:
@@ -1521,12 +1532,13 @@ def metrics(scores, fmt, higher_is_better, out, overwrite, bootstrap, seed):
              "--higher-is-better" if higher_is_better else "--lower-is-better", "--out", Path(out).resolve(),
              "--bootstrap", bootstrap, "--seed", seed]
     info = {"scores": str(source), "scores_sha256": hashlib.sha256(source.read_bytes()).hexdigest(), "format": fmt,
-            "score_direction": "higher is better" if higher_is_better else "lower is better (negated)",
+            "score_direction": "higher is better" if higher_is_better else
+            "lower is better: negated, so every threshold below is minus the distance (a distance <= -t accepts)",
             "n_gallery": int(m.S.shape[1]), "provenance": provenance(rerun)}
     with run_folder(out, overwrite, keep=[scores]) as work:
         result = write_run(work, m.S, m.probe_ids, m.probe_labels, m.gallery_ids, info, bootstrap=bootstrap,
                            seed=seed, mateless=mates_not_compared(m.S, m.probe_ids, m.gallery_ids))
-    _print_metrics(result)
+    _print_metrics(result, negated=not higher_is_better)
     click.echo(f"report: {Path(out) / 'report.html'}")
 
 

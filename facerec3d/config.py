@@ -8,6 +8,7 @@ raises `SettingsError` naming the file, the dotted field (`resample.resolution_m
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import functools
 import json
 import math
@@ -119,9 +120,11 @@ def from_dict(cls, data: dict[str, Any], source: str | Path | None = None, prefi
             raise SettingsError(source, prefix + name, f"was removed (only {retired[name]!r} is still read), "
                                                        f"not {data[name]!r}"[:200])
         data = {k: v for k, v in data.items() if k != name}
-    if unknown := set(data) - known:
-        raise SettingsError(source, prefix.rstrip(".") or None,
-                            f"unknown {cls.__name__} settings: {', '.join(sorted(map(str, unknown)))}")
+    if unknown := sorted(map(str, set(data) - known)):
+        close = difflib.get_close_matches(unknown[0], sorted(known), n=1)
+        hint = f"did you mean {close[0]!r}?" if close else f"this table's settings: {', '.join(sorted(known))}"
+        more = f"; also unknown: {', '.join(unknown[1:])}" if unknown[1:] else ""
+        raise SettingsError(source, prefix + unknown[0], f"unknown setting ({hint}){more}"[:400])
     hints = typing.get_type_hints(cls)
     values = {name: _check(hints[name], value, source, prefix + name,
                            _default(cls, name) if base is None else getattr(base, name))

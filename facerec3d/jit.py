@@ -146,8 +146,9 @@ def _guarded_load(load):
             return load(self, sig, target_context)
         except Exception as e:  # whatever unpickling a damaged file raises
             index = _index_path(self)
-            print(f"facerec3d: compiled-kernel cache {index}: unreadable ({type(e).__name__}: {e}); compiling "
-                  f"again", file=sys.stderr, flush=True)
+            print(f"facerec3d: compiled-kernel cache {index} (or a .nbc data file beside it that it names): "
+                  f"unreadable ({type(e).__name__}: {e}); its index removed, compiling again", file=sys.stderr,
+                  flush=True)
             with suppress(OSError):
                 os.remove(index)
             return None

@@ -102,8 +102,13 @@ def test_cli_evaluate_and_compare(dataset, runs, tmp_path):
     (gone / "manifest.csv").write_text((dataset / "manifest.csv").read_text())
     r = CliRunner().invoke(main, ["evaluate", str(gone / "manifest.csv"), "--out", str(tmp_path / "g"), "--jobs", "1",
                                   "--cache", str(out / "cache")])
-    assert r.exit_code == 1 and "no comparison made: 0 gallery faces enrolled, 0 probes processed" in r.output, \
+    assert r.exit_code == 1 and "error: no comparison made: 0 gallery faces enrolled, 0 probes processed" in r.output, \
         r.output
+    n_scans = len((dataset / "manifest.csv").read_text().splitlines()) - 1
+    assert r.output.count("failed (gallery): ") + r.output.count("failed (probe): ") == n_scans and f"{n_scans} scans failed" in r.output, r.output
+    assert "rank-1" not in r.output and "per comparison" not in r.output  # no table of dashes, no time of 0 matches
+    timings = json.loads((tmp_path / "g" / "metrics.json").read_text())["timings"]
+    assert "match_ms" not in timings and "matches_per_s" not in timings
     curves = tmp_path / "cli" / "curves.npz"  # a run's damaged curves: one line naming the file
     curves.write_bytes(curves.read_bytes()[:200])
     r = CliRunner().invoke(main, ["compare", str(out / "one"), str(tmp_path / "cli"), "--out", str(tmp_path / "cmp2")])
@@ -136,7 +141,7 @@ def test_cli_method_config_sets_the_matcher_and_bad_settings_are_one_line(datase
     assert m["options"]["variant"] == "point-to-plane" and m["options"]["fine_points"] == 800
     assert m["subsets"]["neutral"]["rank1"] == 1.0
     r = CliRunner().invoke(main, base + ["--out", str(tmp_path / "bad"), "--method-config", str(bad)])
-    assert r.exit_code == 2 and "unknown ICPConfig settings: fine_pionts" in r.output
+    assert r.exit_code == 2 and "fine_pionts: unknown setting (did you mean 'fine_points'?)" in r.output
     assert "Traceback" not in r.output
 
 

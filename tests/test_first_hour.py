@@ -693,6 +693,23 @@ def test_fusing_score_files_that_share_nothing_is_an_error(tmp_path):
                                   str(tmp_path / "f.txt")])
     assert r.exit_code == 2 and "shares no comparison" in r.output, r.output
     assert not (tmp_path / "f.txt").exists()
+    # of three, the one that shares nothing is named, not the second (which fuses with the first)
+    (tmp_path / "c.txt").write_text("s1 s1 p1 0.7\ns2 s1 p1 0.2\n")
+    r = CliRunner().invoke(main, ["fuse", str(tmp_path / "a.txt"), str(tmp_path / "c.txt"), str(tmp_path / "b.txt"),
+                                  "--out", str(tmp_path / "f.txt")])
+    assert r.exit_code == 2 and r.output.strip() == (f"error: {tmp_path / 'b.txt'}: shares no comparison with "
+                                                     f"{tmp_path / 'a.txt'} (other probes or gallery faces): nothing "
+                                                     "to fuse"), r.output
+    # each shares some with the first, none is in all three: all named
+    (tmp_path / "d.txt").write_text("s2 s1 p1 0.9\n")
+    (tmp_path / "e.txt").write_text("s1 s1 p1 0.9\n")
+    r = CliRunner().invoke(main, ["fuse", str(tmp_path / "a.txt"), str(tmp_path / "d.txt"), str(tmp_path / "e.txt"),
+                                  "--out", str(tmp_path / "f.txt")])
+    assert r.exit_code == 2 and "no comparison is in every file" in r.output and "e.txt" in r.output, r.output
+    r = CliRunner().invoke(main, ["fuse", str(tmp_path / "a.txt"), str(tmp_path / "c.txt"), "--rule", "avg",
+                                  "--out", str(tmp_path / "f.txt")])
+    assert r.exit_code == 2 and r.output.strip() == ("error: unknown fusion rule 'avg': use one of sum, product, "
+                                                     "weighted-sum, borda, consensus"), r.output
 
 
 def test_a_gallery_commands_help_needs_no_store():
@@ -920,3 +937,20 @@ def test_verify_against_a_one_person_fusion_gallery_says_why_every_claim_is_reje
     assert r.exit_code == 1 and r.output.startswith("reject: claim a, score 0.0000"), r.output
     assert "hint: method 'fusion' normalises each probe's scores over the gallery's people, and this gallery holds " \
            "one: every claim scores 0." in r.output
+
+
+def test_metrics_of_distances_prints_thresholds_on_the_distances_own_scale(tmp_path):
+    """Scores read with --lower-is-better are negated inside; the thresholds printed were on that negated scale
+    ("score >= -1.78 accepts": everyone, on the user's distances). They are now the distances themselves."""
+    import re
+
+    lines = [f"s{g} s{p} p{p}_{k} {0.1 + 0.05 * k if g == p else 0.8 + 0.05 * k}"
+             for p in range(3) for k in range(2) for g in range(3)]
+    (tmp_path / "dist.txt").write_text("\n".join(lines) + "\n")
+    r = CliRunner().invoke(main, ["metrics", str(tmp_path / "dist.txt"), "--lower-is-better", "--out",
+                                  str(tmp_path / "m"), "--bootstrap", "0"])
+    assert r.exit_code == 0, r.output
+    line = next(x for x in r.output.splitlines() if x.startswith("thresholds"))
+    assert "distance <= t accepts" in line, line
+    t = float(re.search(r"EER (-?[\d.]+)", line).group(1))
+    assert 0.15 <= t < 0.8, line  # every genuine distance (0.10, 0.15) accepted, every impostor's (0.80, 0.85) not

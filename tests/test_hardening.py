@@ -514,7 +514,7 @@ def test_cache_entries_are_written_atomically(data, tmp_path, monkeypatch):
 # ---------------------------------------------------------------- 4. settings
 @pytest.mark.parametrize("text, where", [
     ('[resample]\nresolution_mm = 0\n', "resample.resolution_mm: must be > 0, not 0"),
-    ('[detect]\ncrop_radius_mm = 70\n', "detect: unknown DetectConfig settings: crop_radius_mm"),
+    ('[detect]\ncrop_radius_mm = 70\n', "detect.crop_radius_mm: unknown setting"),
     ('[detect]\nmin_seen = 1.5\n', "detect.min_seen: must be in [0, 1], not 1.5"),
     ('[detect]\nmax_roll_deg = 0\n', "detect.max_roll_deg: must be > 0, not 0"),  # a divisor (head_penalty)
     ('[detect]\nscreen_iterations = 4\nscreened = 0\n', "detect.screened: must be > 0, not 0"),  # IndexError on every scan

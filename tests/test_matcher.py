@@ -130,7 +130,7 @@ def test_matcher_settings_and_learnt_state_survive_save_and_load(tmp_path, monke
     assert (m.config.variant, m.config.fine_points) == ("point-to-plane", 500)
     m.save(tmp_path / "icp.npz")
     assert registry.load_matcher(tmp_path / "icp.npz").config == m.config
-    with pytest.raises(ValueError, match="unknown ICPConfig settings: colour"):
+    with pytest.raises(ValueError, match="colour: unknown setting"):
         registry.make_matcher("icp", {"colour": 1})
     with pytest.raises(ValueError, match="unknown method 'nope'"):
         registry.make_matcher("nope")

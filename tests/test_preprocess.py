@@ -679,7 +679,7 @@ def test_a_retired_hole_setting_reads_back_only_at_the_value_that_did_nothing():
     assert PreprocessConfig.from_dict({"holes": {"small_mm2": 0.0}}) == PreprocessConfig()
     with pytest.raises(SettingsError, match=r"old\.toml.*holes\.small_mm2.*removed"):
         PreprocessConfig.from_dict({"holes": {"small_mm2": 10.0}}, "old.toml")
-    with pytest.raises(SettingsError, match="unknown HoleConfig settings: large_mm2"):
+    with pytest.raises(SettingsError, match="large_mm2: unknown setting"):
         PreprocessConfig.from_dict({"holes": {"large_mm2": 0.0}}, "old.toml")
 
 

@@ -719,7 +719,8 @@ POSE_LABELS = {"yaw": "yaw", "pose": "yaw-pitch-roll"}
 
 def scan_session(spec: ScanSpec) -> str:
     """The FRGC semester folder of a scan: a subject's scans go round Spring 2003, Fall 2003, Spring 2004, so
-    with three or more scans per subject every semester has some (FRGC Experiment 3 and its masks can be run)."""
+    with three or more scans per subject every semester has some (FRGC Experiment 3 can be run), and with six or
+    more each person has two in each semester (genuine pairs for every mask, ROC I's within one semester too)."""
     return FRGC_SESSIONS[spec.seed % len(FRGC_SESSIONS)]
 
 
@@ -729,8 +730,9 @@ def scan_path(spec: ScanSpec, index: int, fmt: str) -> str:
         return f"nd1/{scan_session(spec)}/{subject_id(spec.subject)}d{index + 100:03d}.abs.gz"
     if fmt == "bnt":
         kind, sub = BOSPHORUS_TYPES[spec.expression]
-        if spec.expression == "neutral" and abs(spec.yaw) >= 10:
-            kind, sub = "YR", f"{'R' if spec.yaw > 0 else 'L'}{int(round(abs(spec.yaw) / 10) * 10)}"
+        if spec.expression == "neutral" and SCAN_PLAN[spec.seed % len(SCAN_PLAN)] in POSE_LABELS:  # as the manifest
+            #   labels it: a turned scan, not a frontal one whose small random yaw reached 10°
+            kind, sub = "YR", f"{'R' if spec.yaw > 0 else 'L'}{max(10, int(round(abs(spec.yaw) / 10) * 10))}"
         bs = bosphorus_id(spec.subject)
         return f"{bs}/{bs}_{kind}_{sub}_{spec.seed}.bnt"
     if fmt in ("png", "obj", "ply"):  # a camera's frames or a scanner's meshes, one folder per person

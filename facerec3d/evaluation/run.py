@@ -178,9 +178,11 @@ def _evaluate(engine: Engine, matcher, training: dict, dataset, sp, data: str | 
     # match_ms: per comparison, the probe's preparation (features, normals: once per probe) not included
     timings["match_first_s"] = spent[0][0]
     match_s, prepare_s, n_steady = np.sum(spent[1:] or spent[:1], axis=0)
-    n_matches = max(n_steady * len(gallery), 1)
-    timings.update(match_s=time.perf_counter() - t0, prepare_ms=1000 * prepare_s / max(n_steady, 1),
-                   match_ms=1000 * (match_s - prepare_s) / n_matches, matches_per_s=n_matches / max(match_s, 1e-9))
+    n_matches = n_steady * len(gallery)
+    timings.update(match_s=time.perf_counter() - t0)
+    if n_matches:  # (none when no probe or no gallery face was left)
+        timings.update(prepare_ms=1000 * prepare_s / n_steady, match_ms=1000 * (match_s - prepare_s) / n_matches,
+                       matches_per_s=n_matches / max(match_s, 1e-9))
 
     failed_probes = [i for i in sp.probes if i not in faces]
     masks, subset_failures = {}, {}

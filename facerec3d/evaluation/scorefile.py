@@ -274,8 +274,12 @@ def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str =
         stack[k][np.ix_(rows[keep_r], cols[keep_c])] = m.S[np.ix_(keep_r, keep_c)]
     made = ~np.isnan(stack).any(axis=0)
     if not made.any():
-        raise InputError(f"{paths[1]}: shares no comparison with {paths[0]} (other probes or gallery faces): "
-                         "nothing to fuse")
+        seen = ~np.isnan(stack)
+        alone = next((k for k in range(1, len(paths)) if not (seen[0] & seen[k]).any()), None)
+        raise InputError(f"{paths[alone]}: shares no comparison with {paths[0]} (other probes or gallery faces): "
+                         "nothing to fuse" if alone is not None else
+                         f"{', '.join(map(str, paths))}: no comparison is in every file (each shares some with "
+                         f"{paths[0]}, but not the same ones): nothing to fuse")
     fused = np.full(made.shape, np.nan)
     people = np.asarray(first.gallery_ids)
     for i in np.flatnonzero(made.any(axis=1)):

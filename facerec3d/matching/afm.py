@@ -91,7 +91,7 @@ class AFMConfig:
     def __post_init__(self) -> None:
         check_ranges(self)  # NaN or a negative named before the checks below compute with it
         if self.expression not in EXPRESSION_HANDLING:
-            raise ValueError(f"unknown expression handling {self.expression!r}: use one of {EXPRESSION_HANDLING}")
+            raise ValueError(f"unknown expression handling {self.expression!r}: use one of {', '.join(EXPRESSION_HANDLING)}")
         if not 1 <= self.levels or 2**self.levels > self.image.size or not 0 <= self.drop_finest < self.levels:
             raise ValueError("need 1 ≤ levels, 2**levels ≤ image.size and 0 ≤ drop_finest < levels")
         if self.regions < 1 or (self.image.size >> self.levels) % self.regions:

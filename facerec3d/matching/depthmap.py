@@ -38,7 +38,7 @@ class DepthMapConfig:
     def __post_init__(self) -> None:
         check_ranges(self)  # NaN or a negative named before the checks below compute with it
         if self.fill not in FILLS:
-            raise ValueError(f"unknown fill {self.fill!r}: use one of {FILLS}")
+            raise ValueError(f"unknown fill {self.fill!r}: use one of {', '.join(FILLS)}")
         stride = self.step_mm / self.grid.resolution_mm
         if self.step_mm <= 0 or abs(stride - round(stride)) > 1e-9:
             raise ValueError("step_mm must be a positive multiple of the resampling grid's resolution_mm")

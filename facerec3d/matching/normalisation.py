@@ -64,7 +64,7 @@ def normalise(scores: np.ndarray, method: str, reference: np.ndarray | None = No
     """Scores (n,) on a common scale, parameters from `reference` (default: the scores themselves).
     A degenerate reference (all equal) maps every score to 0 (z-score) or 0.5 (min-max, tanh)."""
     if method not in NORMALISATIONS:
-        raise ValueError(f"unknown normalisation {method!r}: use one of {NORMALISATIONS}")
+        raise ValueError(f"unknown normalisation {method!r}: use one of {', '.join(NORMALISATIONS)}")
     s = np.asarray(scores, dtype=np.float64)
     ref = s if reference is None else np.asarray(reference, dtype=np.float64)
     finite = ref[np.isfinite(ref)]
@@ -133,9 +133,9 @@ def minus_best_other(fused: np.ndarray, subjects: np.ndarray, share: float) -> n
 def check_fusion(rule: str, normalisation: str, weights: Sequence[float], n_sources: int) -> None:
     """Raise ValueError for settings `fuse` would refuse (checked when a config is made)."""
     if rule not in RULES:
-        raise ValueError(f"unknown fusion rule {rule!r}: use one of {RULES}")
+        raise ValueError(f"unknown fusion rule {rule!r}: use one of {', '.join(RULES)}")
     if normalisation not in NORMALISATIONS:
-        raise ValueError(f"unknown normalisation {normalisation!r}: use one of {NORMALISATIONS}")
+        raise ValueError(f"unknown normalisation {normalisation!r}: use one of {', '.join(NORMALISATIONS)}")
     if rule == "product" and normalisation not in ("min-max", "tanh", "tanh-hampel"):
         raise ValueError("the product rule needs a non-negative normalisation: min-max, tanh or tanh-hampel")
     if len(weights) and rule != "weighted-sum":  # given for nothing: silently ignored (a fusion's method config)

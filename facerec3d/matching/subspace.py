@@ -99,7 +99,7 @@ class PCAConfig:
 
     def __post_init__(self) -> None:
         if self.distance not in DISTANCES:
-            raise ValueError(f"unknown distance {self.distance!r}: use one of {DISTANCES}")
+            raise ValueError(f"unknown distance {self.distance!r}: use one of {', '.join(DISTANCES)}")
         if not 0 < self.variance <= 1 or (self.n_components is not None and self.n_components < 1):
             raise ValueError("need 0 < variance <= 1 and n_components >= 1")
 
@@ -118,7 +118,7 @@ class LDAConfig:
 
     def __post_init__(self) -> None:
         if self.distance not in DISTANCES:
-            raise ValueError(f"unknown distance {self.distance!r}: use one of {DISTANCES}")
+            raise ValueError(f"unknown distance {self.distance!r}: use one of {', '.join(DISTANCES)}")
         if any(n is not None and n < 1 for n in (self.pca_components, self.n_components)):
             raise ValueError("pca_components and n_components must be >= 1")
         if not 0 < self.pca_share <= 1:

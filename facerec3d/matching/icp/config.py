@@ -50,7 +50,7 @@ class ICPConfig:
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
-            raise ValueError(f"unknown ICP variant {self.variant!r}: use one of {VARIANTS}")
+            raise ValueError(f"unknown ICP variant {self.variant!r}: use one of {', '.join(VARIANTS)}")
         if not 0 < self.distance_end <= self.distance_start:
             raise ValueError("need 0 < distance_end <= distance_start")
         if self.score_cap is not None and not self.score_cap > 0:
