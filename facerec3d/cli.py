@@ -1355,8 +1355,9 @@ def train_embedding(out, identities, scans, sensors, identity_profiles, epochs, 
 @click.option("--max-upload-mb", default=64.0, show_default=True, type=click.FloatRange(min=0.01),
               callback=lambda ctx, param, v: _finite(v, "--max-upload-mb"),
               help="Largest upload (MiB, at least 0.01: a form's own parts take ~4 KiB); larger get 413.")
-@click.option("--max-points", default=5_000_000, show_default=True, type=click.IntRange(min=1),
-              help="Largest scan (points); larger get 413.")
+@click.option("--max-points", default=4_000_000, show_default=True, type=click.IntRange(min=1, max=4_000_000),
+              help="Largest scan (points; at most 4,000,000, the most any reader takes: io.common.MAX_POINTS); "
+                   "larger get 413.")
 @click.option("--audit", type=click.Path(dir_okay=False),
               help="Audit log, JSON lines (who enrolled or removed what, when) [default: GALLERY.audit.jsonl].")
 @click.option("--ssl-certfile", type=click.Path(exists=True, dir_okay=False), help="TLS certificate (PEM).")

@@ -106,7 +106,7 @@ def test_a_groups_help_names_every_command_it_has(group):
     ("--max-upload-mb", "nan", "must be a finite number, not nan"), ("--max-upload-mb", "0", "not in the range x>=0.01"),
     ("--max-upload-mb", "1e-9", "not in the range x>=0.01"),  # int(1e-9 MiB) was a 0-byte limit: every upload 413
     ("--queue", "-5", "not in the range x>=0"), ("--per-key", "-1", "not in the range x>=1"),
-    ("--per-key", "0", "not in the range x>=1"), ("--max-points", "-1", "not in the range x>=1"),
+    ("--per-key", "0", "not in the range x>=1"), ("--max-points", "-1", "not in the range 1<=x<=4000000"), ("--max-points", "5000000", "not in the range 1<=x<=4000000"),
     ("--concurrency", "-1", "not in the range x>=1")])
 def test_serve_refuses_limits_it_cannot_keep_in_one_line(tmp_path, option, value, said):
     """`--port 70000` died on an OverflowError, `--timeout nan` on "cannot convert float NaN to integer"; `--timeout

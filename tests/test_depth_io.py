@@ -89,6 +89,7 @@ BAD_INTRINSICS = [
      r"unknown field 'depth_units_mm' \(did you mean 'depth_unit_mm'\?\)"),  # read as 1 mm units, 10× off, before
     ('{"fx": 365, "fy": 365, "cx": 59, "cy": 74, "depth_scale_m": 0.001, "depth_unit_mm": 10}',
      "depth_unit_mm and depth_scale_m disagree"),
+    ('{"fx": 365, "fy": 365, "cx": 59, "cy": 74, "note": "' + "x" * 70_000 + '"}', "intrinsics file over 64 KiB"),
 ]
 
 
@@ -195,3 +196,13 @@ def test_android_depth16_frames_keep_the_range_bits_and_leave_out_what_the_senso
     assert np.linalg.norm(landmarks_in_input_frame(face)["nose_tip"] - truth) <= 10.0
     (frame16.parent / "intrinsics.json").write_text(json.dumps(intrinsics))  # the same file read as plain depth
     assert np.median(-load_scan(frame16).points[:, 2]) > 8192.0
+
+
+def test_intrinsics_made_in_code_are_checked_as_a_file_is():
+    """`Intrinsics(fx=-1, ...)` was accepted and a frame read with it failed with "math domain error"."""
+    from facerec3d.io.depth import Intrinsics
+
+    for bad in ({"fx": -1.0}, {"fy": 0.0}, {"cx": float("nan")}, {"depth_unit_mm": 0.0}):
+        with pytest.raises(ValueError, match="intrinsics: "):
+            Intrinsics(**{"fx": 365.0, "fy": 365.0, "cx": 59.0, "cy": 74.0, **bad})
+    assert Intrinsics(fx=365.0, fy=365.0, cx=59.0, cy=74.0).fx == 365.0

@@ -355,6 +355,10 @@ def test_enroll_scans_takes_paths_and_verify_scan_refuses_a_threshold_that_is_no
         assert sorted(e.subject for e in store.entries()) == sorted(r.subject for r in scan_records(gallery_scans))
         with pytest.raises(InputError, match=r"^enroll_scans takes scan records \(scan_records\) or paths .*, not 3$"):
             enroll_scans(store, [3], ICPMatcher())
+        with pytest.raises(InputError, match=r"^enroll_scans takes scan records .*, not 123$"):  # was a TypeError
+            enroll_scans(store, 123, ICPMatcher())
+        with pytest.raises(InputError, match=r"^enroll_scans takes a matcher .*, not 'icp'$"):  # was AttributeError
+            enroll_scans(store, gallery_scans[0], "icp")
         for bad in (float("nan"), float("inf"), "1", True, None.__class__):
             with pytest.raises(InputError, match=r"^a verification threshold is a finite number, not "):
                 verify_scan(store, probe, probe_subject, threshold=bad)

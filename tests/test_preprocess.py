@@ -255,6 +255,9 @@ def test_batch_reports_failures_by_name_and_goes_on(tmp_path):
     assert rows[str(noise)]["status"] not in ("ok", "")
     outcomes = list(preprocess_files([corrupt, good], jobs=2))
     assert [o.face is None for o in outcomes] == [True, False]
+    for one in (good, str(good)):  # one path alone is one file (a string was read as one "file" per character)
+        outcomes = list(preprocess_files(one))
+        assert len(outcomes) == 1 and outcomes[0].face is not None
 
 
 def test_a_hand_or_glasses_that_fit_the_face_model_do_not_win_over_the_nose():

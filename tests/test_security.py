@@ -165,6 +165,12 @@ def test_deleting_the_key_file_revokes_every_key_and_is_logged(tmp_path, caplog)
     assert f"key file {keys} removed: all 1 keys revoked" in caplog.text
     keys.write_text("{broken")  # a half-done edit after that: still no key works
     assert kf.authenticate(alice) is None
+    keys.unlink()
+    assert kf.authenticate(alice) is None  # (the removal seen)
+    caplog.clear()
+    carol = add_key(keys, "carol", "query")  # a key file put back after its removal: its keys work, and it is said
+    assert kf.authenticate(carol).name == "carol" and kf.authenticate(alice) is None
+    assert f"key file {keys} changed: 1 keys (carol)" in caplog.text
 
 
 
@@ -333,6 +339,11 @@ def test_a_failed_rekey_leaves_no_new_key_file(tmp_path, monkeypatch):
             assert r.exit_code != 0 and why in r.output, r.output
         assert not (tmp_path / "new.key").exists() and (tmp_path / "kept.key").exists()
     monkeypatch.setenv(KEY_FILE_ENV, str(tmp_path / "old.key"))
+    monkeypatch.setitem(sys.modules, "cryptography.hazmat.primitives.ciphers.aead", None)  # not installed
+    r = CliRunner().invoke(main, ["gallery", str(gallery), "rekey", "--new-key-file", str(tmp_path / "new.key")])
+    assert r.exit_code == 2 and "pip install 'facerec3d[crypto]'" in r.output, r.output
+    assert not (tmp_path / "new.key").exists()  # made before the package was found missing, it was left behind
+    monkeypatch.delitem(sys.modules, "cryptography.hazmat.primitives.ciphers.aead")
     r = CliRunner().invoke(main, ["gallery", str(gallery), "rekey", "--new-key-file", str(tmp_path / "new.key")])
     assert r.exit_code == 0 and (tmp_path / "new.key").exists(), r.output
 

@@ -155,10 +155,17 @@ def enroll_scans(store: GalleryStore, records: Sequence[ScanRecord | str | PathL
     failure reason). Depth frames are read with `intrinsics` (a JSON file) when given, else with the
     intrinsics.json found beside them.
     """
-    records = [records] if isinstance(records, (str, PathLike)) else list(records)
+    given = records
+    try:
+        records = [records] if isinstance(records, (str, PathLike)) else list(records)
+    except TypeError:  # not iterable
+        records = [given]
     if bad := [r for r in records if not isinstance(r, (ScanRecord, str, PathLike))]:
         raise InputError(f"enroll_scans takes scan records (scan_records) or paths of scans, dataset folders and "
                          f"manifests, not {bad[0]!r:.60}")
+    if not isinstance(matcher, Matcher):
+        raise InputError(f"enroll_scans takes a matcher (facerec3d.matching.registry.make_matcher(name)), not "
+                         f"{matcher!r:.60}")
     records = scan_records(records)
     store.bind(config, matcher)
     report = EnrolReport()

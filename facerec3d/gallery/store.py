@@ -300,13 +300,14 @@ class TemplateKey:
     def make(cls, path: str | PathLike) -> "TemplateKey":
         """A new random key, written to a new file of mode 0600 (never over an existing one)."""
         text = secrets.token_bytes(32).hex()
+        key = cls.from_text(text, str(path))  # (without `cryptography` this fails here, before any file is made)
         try:
             fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
         except OSError as e:
             raise GalleryError(f"{path}: cannot make a key file ({e.strerror})") from None
         with os.fdopen(fd, "w", encoding="ascii") as f:
             f.write(text + "\n")
-        return cls.from_text(text, str(path))
+        return key
 
     @classmethod
     def from_environment(cls) -> "TemplateKey | None":
@@ -668,9 +669,13 @@ class GalleryStore:
     @_sqlite_errors
     def add(self, template: Template, source: str, content: str | None = None) -> int:
         """Store one template (one transaction) and clear the source's failure to enrol, if any; returns its
-        id. `content`: a hash of the scan file's bytes. AlreadyEnrolled when the source, or the content, is."""
+        id. `content`: a hash of the scan file's bytes. AlreadyEnrolled when the source, or the content, is. The
+        template must name its person: `Matcher.enroll` takes the scan's subject (`FaceScan.meta.subject`), which
+        a depth frame or mesh does not know, so set `template.subject` first (`enroll_scans` does: it reads the
+        subjects from folders and manifests)."""
         if not isinstance(template.subject, str) or not template.subject:
-            raise GalleryError(f"{source}: a template needs its subject to be enrolled, not {template.subject!r}")
+            raise GalleryError(f"{source}: a template needs its subject to be enrolled, not {template.subject!r} "
+                               "(set template.subject)")
         encoded = {name: encode_array(a) for name, a in template.arrays.items()}
         with self._transaction():
             if self._meta("binding") != self._binding:  # an empty store was given other settings meanwhile

@@ -45,6 +45,7 @@ from facerec3d.scan import FaceScan
 INTRINSICS_NAME = "intrinsics.json"
 INTRINSICS_SEARCH_DEPTH = 3  # parent folders searched for intrinsics.json, beyond the frame's own
 ENCODINGS = ("plain", "depth16")  # how a pixel holds depth (`Intrinsics.encoding`)
+MAX_INTRINSICS_BYTES = 65536  # an intrinsics.json read at most (a camera's are a few numbers; docs/security.md)
 INTRINSICS_FIELDS = ("fx", "fy", "cx", "cy", "depth_unit_mm", "depth_scale_m", "invalid", "width", "height",
                      "encoding", "min_confidence")  # what `Intrinsics.from_dict` reads
 
@@ -63,6 +64,13 @@ class Intrinsics:
     height: int | None = None
     encoding: str = "plain"  # "plain": a pixel is depth; "depth16": Android's DEPTH16 (range and confidence bits)
     min_confidence: float = 1 / 7  # depth16: pixels the sensor is less confident of are left out (0 %: none)
+
+    def __post_init__(self) -> None:  # (from_dict and load say which file and field; this guards the API's own)
+        for name in ("fx", "fy", "cx", "cy", "depth_unit_mm", "min_confidence"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"intrinsics: {name} must be a finite number, not {getattr(self, name)!r}")
+        if self.fx <= 0 or self.fy <= 0 or self.depth_unit_mm <= 0:
+            raise ValueError("intrinsics: fx, fy and depth_unit_mm must be positive")
 
     @classmethod
     def from_dict(cls, data: dict, source: str | Path = "intrinsics") -> "Intrinsics":
@@ -113,11 +121,17 @@ class Intrinsics:
 
     @classmethod
     def load(cls, path: str | Path) -> "Intrinsics":
-        """Intrinsics from a JSON file; ScanFormatError naming the file and the reason."""
+        """Intrinsics from a JSON file of at most `MAX_INTRINSICS_BYTES`; ScanFormatError naming the file and the
+        reason."""
         try:
-            text = Path(path).read_text()
+            with open(path, "rb") as f:
+                raw = f.read(MAX_INTRINSICS_BYTES + 1)
+            text = raw.decode("utf-8")
         except (OSError, UnicodeDecodeError) as e:
             raise ScanFormatError(path, f"cannot read intrinsics ({type(e).__name__})") from None
+        if len(raw) > MAX_INTRINSICS_BYTES:
+            raise ScanFormatError(path, f"intrinsics file over {MAX_INTRINSICS_BYTES // 1024} KiB (a camera's "
+                                        "intrinsics are a few numbers)")
         try:
             data = json.loads(text)
         except json.JSONDecodeError as e:

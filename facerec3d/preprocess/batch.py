@@ -198,9 +198,10 @@ def preprocess_files(paths: Sequence[str | Path], config: PreprocessConfig = Pre
                      intrinsics: str | Path | None = None) -> Iterator[Outcome]:
     """Outcomes in the order of `paths`, computed on `workers` (an engine's: local processes or Dask workers), or
     else by `jobs` local processes started for the batch; reusing `cache` when given (a folder the workers
-    share); depth frames read with `intrinsics` when given."""
+    share); depth frames read with `intrinsics` when given. One path alone (a string) is one file, not a
+    sequence of characters."""
     args = (config, None if cache is None else str(cache), None if intrinsics is None else str(intrinsics))
-    files = [str(p) for p in paths]
+    files = [str(paths)] if isinstance(paths, (str, os.PathLike)) else [str(p) for p in paths]
     if workers is not None:
         yield from workers.imap(preprocess_file, files, *args)
         return

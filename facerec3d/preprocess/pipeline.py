@@ -99,6 +99,8 @@ class PreprocessConfig:
                              f"set both")
 
     def to_dict(self) -> dict[str, Any]:
+        """Every setting as plain values, nested tables as dicts (what `load` reads back, and a run's
+        preprocess.json holds)."""
         return dataclasses.asdict(self)
 
     def fingerprint(self) -> str:

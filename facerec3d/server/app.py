@@ -52,6 +52,7 @@ from facerec3d.evaluation.calibrate import MAX_SCANS, OWN_SCANS, threshold_recor
 from facerec3d.gallery.cascade import CascadeConfig
 from facerec3d.gallery.store import Entry, GalleryError, ServeLock
 from facerec3d.io import SUPPORTED_SUFFIXES, Intrinsics, scan_stem, scan_suffix
+from facerec3d.io.common import MAX_POINTS
 from facerec3d.server.jobs import Mismatch, Rejected, Upload, enrol_job, probe_job
 from facerec3d.server.keys import KeyFile
 from facerec3d.server.live import Conflict, LiveGallery, NotFound, WorkerLost
@@ -915,7 +916,7 @@ def warm(live: LiveGallery, echo=print) -> None:
 
 def serve(gallery: str | Path, keys: str | Path, host: str = "127.0.0.1", port: int = 8000, jobs: int | None = None,
           scheduler: str | None = None, method: str | None = None, options: dict | None = None, config=None,
-          settings: ServiceSettings | None = None, max_points: int = 5_000_000, audit: str | Path | None = None,
+          settings: ServiceSettings | None = None, max_points: int = MAX_POINTS, audit: str | Path | None = None,
           ssl_certfile: str | None = None, ssl_keyfile: str | None = None, echo=print) -> None:
     """Load the gallery into `jobs` worker processes (or a Dask cluster's workers) and answer HTTP on host:port
     until interrupted (SIGINT / SIGTERM: in-flight requests finish, the workers stop). The address is bound first

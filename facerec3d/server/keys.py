@@ -140,6 +140,7 @@ class KeyFile:
         self.path = Path(path)
         self._lock = threading.Lock()
         self._stamp: tuple | None = None
+        self._loaded = False  # the first load is not a change; every later one (a file put back too) is logged
         self._keys: dict[str, ApiKey] = {}
         self.unreadable: str | None = None  # why the file, changed, cannot be read (no key works meanwhile)
         self._load()
@@ -159,13 +160,13 @@ class KeyFile:
         with self._lock:
             records = read_keys(self.path)
             keys = {k["sha256"]: ApiKey(k["name"], frozenset(k["scopes"])) for k in records}
-            if self._stamp is not None:
+            if self._loaded:
                 log.warning("facerec3d service: key file %s changed: %d keys (%s)", self.path, len(keys),
                             ", ".join(sorted(k.name for k in keys.values()))[:500])
             if os.name == "posix" and st.st_mode & 0o022:  # hashes are no secret, but whoever can write adds keys
                 log.warning("facerec3d service: key file %s can be written by group or others (mode %04o): anyone "
                             "who can write it can add a key; chmod 600 %s", self.path, st.st_mode & 0o7777, self.path)
-            self._keys, self._stamp, self.unreadable = keys, stamp, None
+            self._keys, self._stamp, self.unreadable, self._loaded = keys, stamp, None, True
 
     def _reload(self) -> None:
         """Reload the file if it changed; once it is gone, or while it cannot be read, no key works."""

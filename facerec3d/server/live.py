@@ -43,6 +43,7 @@ import numpy as np
 
 from facerec3d.config import DEFAULT_METHOD
 from facerec3d.errors import FaceRec3DError
+from facerec3d.io.common import MAX_POINTS
 from facerec3d.evaluation.calibrate import pair_scores, too_few_pairs
 from facerec3d.gallery.cascade import CascadeConfig, check_cascadable
 from facerec3d.gallery.engine import Engine, Probe, ShardedGallery
@@ -124,7 +125,7 @@ class LiveGallery:
 
     def __init__(self, path: str | os.PathLike, jobs: int | None = None, scheduler: Any = None,
                  method: str | None = None, options: dict | None = None, config: PreprocessConfig | None = None,
-                 audit: AuditLog | None = None, max_points: int = 5_000_000):
+                 audit: AuditLog | None = None, max_points: int = MAX_POINTS):
         self.path = Path(path)
         self.audit = audit or AuditLog(None)
         self.max_points = max_points
