@@ -75,7 +75,10 @@ class FaceScan:
     provenance: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        pts = np.ascontiguousarray(self.points, dtype=np.float64).reshape(-1, 3)
+        pts = np.ascontiguousarray(self.points, dtype=np.float64)
+        if pts.size and (pts.ndim != 2 or pts.shape[1] != 3):  # (an (N, 2) array would reshape into other points)
+            raise ValueError(f"points must be an (N, 3) array of x, y, z, not one of shape {pts.shape}")
+        pts = pts.reshape(-1, 3)
         object.__setattr__(self, "points", pts)
         n = len(pts)
         if self.grid is not None:

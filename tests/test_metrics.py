@@ -212,6 +212,9 @@ def test_score_file_errors(tmp_path):
     wide.write_text("probe_subject_id,probe_template_id,bio_ref_subject_id,score\na," + "x" * 200_000 + ",a,1\n")
     with pytest.raises(InputError, match=r"wide\.csv: not a readable CSV file \(field larger than field limit"):
         read_score_matrix(wide, "csv")
+    for missing in (tmp_path / "missing.txt", tmp_path):  # no such file, a folder: InputError, not an OSError
+        with pytest.raises(InputError, match=rf"{missing.name}: cannot read \("):
+            read_score_matrix(missing)
     bad = tmp_path / "bad.txt"
     bad.write_text("A A a1 0.5\n\nA B b1 zero\n")
     with pytest.raises(ValueError, match="bad.txt:3"):

@@ -138,3 +138,15 @@ def test_resolution_of_a_grid_is_the_median_spacing_to_the_nearest_of_8_neighbou
     sample = np.random.default_rng(0).choice(scan.n_points, 20000, replace=False)
     expected = np.sqrt(np.median(best[sample][np.isfinite(best[sample])]))
     assert scan.resolution() == expected
+
+
+def test_points_of_another_shape_are_refused_not_reshaped():
+    """An (N, 2) array of N divisible by 3 was silently reshaped into other points: (3, 2) became 2 points."""
+    import pytest
+
+    from facerec3d.scan import FaceScan
+
+    for shape in ((3, 2), (2, 6), (4, 3, 1)):
+        with pytest.raises(ValueError, match=r"points must be an \(N, 3\) array"):
+            FaceScan(np.zeros(shape))
+    assert FaceScan(np.zeros((5, 3))).n_points == 5 and FaceScan(np.zeros(0)).n_points == 0

@@ -123,6 +123,8 @@ def text_file(path: str | Path, newline: str | None = None):
             from None
     except csv.Error as e:
         raise InputError(f"{path}: not a readable CSV file ({e})") from None
+    except OSError as e:  # missing, a folder, no permission
+        raise InputError(f"{path}: cannot read ({e.strerror or type(e).__name__})") from None
 
 
 def read_scores(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
