@@ -81,6 +81,7 @@ BAD_INTRINSICS = [
     ('{"fx": 365, "fy": 365, "cx": 59}', "'cy'"),
     ('{"fx": "365", "fy": 365, "cx": 59, "cy": 74}', "'fx' must be a finite number"),
     ('{"fx": -1, "fy": 365, "cx": 59, "cy": 74}', "positive"),
+    ('{"fx": 365, "fy": -365, "cx": 59, "cy": 74}', "positive"),
     ('{"fx": 365, "fy": 365, "cx": 59, "cy": 74, "depth_unit_mm": 0}', "depth unit"),
     ('{"fx": 365, "fy": 365, "cx": 59, "cy": 74, "width": 7, "height": 9}', "intrinsics are for 9x7"),
     ('{"fx": 365, "fy": 365, "cx": 59, "cy": 74, "encoding": "depth32"}', "'encoding' must be one of plain, depth16"),
@@ -206,3 +207,29 @@ def test_intrinsics_made_in_code_are_checked_as_a_file_is():
         with pytest.raises(ValueError, match="intrinsics: "):
             Intrinsics(**{"fx": 365.0, "fy": 365.0, "cx": 59.0, "cy": 74.0, **bad})
     assert Intrinsics(fx=365.0, fy=365.0, cx=59.0, cy=74.0).fx == 365.0
+
+
+def test_depth16_ranges_use_all_13_bits_whatever_the_confidence(tmp_path):
+    """DEPTH16's range is the 13 low bits (0-8191 mm): ranges beyond 4095 mm keep their 12th bit, under any
+    confidence code that is kept (0: 100 %, 7: 6/7)."""
+    ranges = np.array([[500, 4095, 4096], [5000, 8191, 1234]], np.uint16)
+    codes = np.array([[0, 7, 0], [7, 0, 7]], np.uint16)
+    Image.fromarray((codes << 13) | ranges).save(tmp_path / "f.png")
+    cam = Intrinsics(fx=500.0, fy=500.0, cx=1.0, cy=0.5, encoding="depth16")
+    scan = read_depth_image(tmp_path / "f.png", cam)
+    assert scan.n_points == 6
+    np.testing.assert_array_equal(scan_to_frame(scan, cam), ranges)
+
+
+def test_a_cameras_own_invalid_value_marks_no_measurement(tmp_path):
+    """A camera marking missing pixels with 65535 (not 0): those pixels are no points; the others read in the
+    depth unit as usual."""
+    units = np.full((4, 5), 4000, np.uint16)
+    units[1, 2] = units[3, 0] = 65535
+    Image.fromarray(units).save(tmp_path / "f.png")
+    cam = Intrinsics(fx=500.0, fy=500.0, cx=2.0, cy=1.5, depth_unit_mm=0.25, invalid=65535)
+    cam.save(tmp_path / "intrinsics.json")
+    scan = load_scan(tmp_path / "f.png")
+    expected = np.where(units == 65535, np.nan, 1000.0)
+    assert scan.n_points == 18
+    np.testing.assert_array_equal(scan_to_frame(scan, cam), expected)

@@ -157,6 +157,41 @@ def test_iterations_and_convergence(mesh, variant):
         assert result.iterations == cap and not result.converged
 
 
+def test_the_fine_phase_starts_when_only_its_updates_are_left(mesh):
+    """Coarse to fine (§8.6.1): a coarse phase whose threshold is still shrinking when only `fine_iterations` of
+    `max_iterations` updates are left hands over then; the fine phase, at the final threshold, converges before the
+    cap (point-to-plane: it settles in a few updates)."""
+    gallery = GalleryIndex.from_scan(grid_scan(mesh))
+    Rp, tp = rotation_from_euler(2.5, -2.0, 1.5), np.array([2.0, -3.0, 1.5])
+    probe = grid_scan((mesh[0] @ Rp.T + tp, mesh[1])).points
+    probe[:, 2] += np.random.default_rng(0).normal(0.0, 0.3, len(probe))
+    config = ICPConfig(variant="point-to-plane", max_iterations=20, fine_iterations=10, shrink_iterations=30,
+                       tolerance=1e-6)  # the threshold would shrink for 30 updates
+    result = icp(probe, gallery, config)
+    assert result.converged
+    assert config.max_iterations - config.fine_iterations < result.iterations < config.max_iterations
+    rot, tra = errors(result, Rp.T, -Rp.T @ tp)  # the probe is the face moved by (Rp, tp): ICP undoes it
+    assert rot < 0.3 and tra < 0.3
+
+
+@pytest.mark.parametrize("variant", ["point-to-point", "point-to-plane"])
+def test_the_first_pairs_are_those_within_distance_start_times_the_resolution(variant):
+    """§8.6.1: the first iteration's pair threshold is distance_start × res (10 × 1 mm here): a probe plane 9.5 mm
+    in front of a gallery plane of 1 mm pixels finds its pairs and is brought onto it; one 10.5 mm in front finds
+    none, and is no match."""
+    r, c = np.mgrid[0:60, 0:60].astype(float)
+    plane = FaceScan.from_range_image(np.stack([c - 30.0, 30.0 - r, np.zeros_like(r)], axis=-1),
+                                      np.ones((60, 60), bool))
+    config = ICPConfig(variant=variant)
+    gallery = GalleryIndex.from_scan(plane, config)
+    assert gallery.resolution == 1.0 and config.distance_start == 10.0
+    probe = plane.points[np.max(np.abs(plane.points[:, :2]), axis=1) <= 20.0]  # away from the gallery's rim
+    near = icp(probe + [0.0, 0.0, 9.5], gallery, config)
+    assert near.n_correspondences == min(config.fine_points, len(probe)) and near.mse < 1e-6
+    np.testing.assert_allclose(near.t[2], -9.5, atol=1e-6)
+    assert icp(probe + [0.0, 0.0, 10.5], gallery, config).mse == np.inf
+
+
 def test_rigid_fit_fixes_reflections():
     """Noisy near-planar points mirrored through their plane: the raw SVD solution is a reflection."""
     rng = np.random.default_rng(2)

@@ -124,6 +124,20 @@ def test_hand_written_abs(tmp_path):
     np.testing.assert_array_equal(s.points, [[1, 10, -100], [3, 30, -300], [4, 40, -400], [5, 50, -500]])
 
 
+def test_abs_values_of_16_and_17_digits_read_as_numpy_reads_them(tmp_path):
+    """The fast parser reads at most 15 digits exactly (mantissa / 10^k of exact doubles); a longer token goes to
+    NumPy. Tokens whose mantissa is above 2^53 (rounded once to a double, then again by the division) came out one
+    unit in the last place off NumPy's correctly rounded value when the parser took them itself."""
+    tokens = ["9420968.007385407", "9281.685028995789", "9786907.3662585178", "991734.06264219054"]
+    values = " ".join(tokens)
+    negated = " ".join("-" + t for t in tokens)
+    (tmp_path / "long.abs").write_text(f"1 rows\n4 columns\npixels (flag X Y Z):\n1 1 1 1\n{values}\n{values}\n"
+                                       f"{negated}\n")
+    s = load_scan(tmp_path / "long.abs")
+    expected = np.array(tokens, dtype=np.float64)
+    np.testing.assert_array_equal(s.points, np.stack([expected, expected, -expected], axis=1))
+
+
 def test_gzip_recognised_by_content_and_scan_id_drops_both_suffixes(tmp_path, cap):
     save_scan(cap, tmp_path / "02463d452.abs.gz")
     (tmp_path / "plain.abs").write_bytes((tmp_path / "02463d452.abs.gz").read_bytes())
@@ -199,6 +213,17 @@ def test_lm3_landmarks(tmp_path, cap):
     back = load_scan(tmp_path / "copy.bnt")
     assert back.landmarks.keys() == lm.keys()
     np.testing.assert_array_equal(back.landmarks["Nose tip"], lm["Nose tip"])
+
+
+def test_lm3_landmarks_are_written_to_a_micrometre(tmp_path, cap):
+    """`write_lm3` keeps 1e-6 mm, as `.abs` values are: landmarks of fine fractions come back within it."""
+    landmarks = {"Nose tip": np.array([1.234567, -2.000001, -940.123456]),
+                 "Chin middle": np.array([0.000004, -61.987654, -951.5])}
+    save_scan(cap.replace(landmarks=landmarks), tmp_path / "fine.bnt")
+    back = load_scan(tmp_path / "fine.bnt").landmarks
+    assert back.keys() == landmarks.keys()
+    for name, v in landmarks.items():
+        np.testing.assert_allclose(back[name], v, rtol=0, atol=1e-6)
 
 
 def test_writing_a_bnt_without_landmarks_removes_a_stale_lm3(tmp_path, cap):
@@ -442,6 +467,12 @@ BAD_FILES = [
      b"property list uchar int vertex_indices\nend_header\n1\n3 0 0 0\n",
      "truncated PLY: header promises 3 face elements, the file holds only 1"),
     ("bad.ply", b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n", "no x, y, z"),
+    ("bad.ply", b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+     b"element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 3\n",
+     "a triangle names a vertex outside 0..2"),  # vertex 3 of 3: one past the last
+    ("bad.ply", b"ply\nformat ascii 1.0\ncomment facerec3d grid_shape 2 2\nelement vertex 2\nproperty float x\n"
+     b"property float y\nproperty float z\nproperty int row\nproperty int col\nend_header\n0 0 0 1 1\n1 0 0 1 1\n",
+     "two points share a grid position"),
     ("bad.ply", b"ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
      b"property float z\nend_header\n", "no valid points"),
     ("bad.npy", b"\x93NUMPY garbage", "unsupported .npy version"),
@@ -451,6 +482,7 @@ BAD_FILES = [
     ("bad.xyz", b"x y z\n1 2\n", "fewer than 3 columns"),
     ("bad.xyz", b"1 2 3\n1 2 x\n", "non-numeric"),
     ("bad.xyz", b"1 2 3\n1 2 inf\n", "non-finite"),
+    ("bad.xyz", b"x y z\n1 2 3\nx 5 6\n", "non-numeric"),  # only a first line is a header of column names
     ("bad.csv", b"", "no valid points"),
     ("bad.obj", b"\x00\xff\xfe garbage", "no valid points"),
     # an OFF cut before the faces its counts line promises was read as a scan of its vertices (a PLY is refused)

@@ -82,6 +82,48 @@ def test_committee_lattice():
         RegionICPConfig(rule="weighted-sum", weights=(1.0,))  # two regions, one weight
 
 
+def _model_vertices():
+    """The model's mean face vertices in the frontal frame, its fiducials, and how far the expressions move each
+    vertex (the largest displacement any one blendshape gives it, mm: the generator's own ground truth)."""
+    model = load_model()
+    face = model.region == 0
+    mean = model.mean - model.mean[model.nose_tip]
+    moves = np.linalg.norm(model.expression_basis[:, face].astype(np.float64), axis=2).max(axis=0)
+    return FaceScan(mean[face].astype(np.float64), landmarks=model.fiducials(mean)), moves
+
+
+def test_the_rigid_region_and_the_expression_mask_leave_out_what_expressions_move():
+    """§8.10.3 on the model's own vertices: the "rigid" region (mobility ≤ 4 mm) holds no vertex that an
+    expression moves 6 mm or more, and most of those that move at most 2 mm (the mobility map is the frontmost
+    vertex's, on a 1 mm grid: a few hidden vertices differ); with `expression_mask` = 6 mm the nose and
+    eyes-forehead regions keep (almost) no vertex moving more than 8 mm (the brows and eyelids), which they hold
+    without it."""
+    scan, moves = _model_vertices()
+    rigid = region_masks(scan, RegionICPConfig(regions=("rigid",)))["rigid"]
+    assert RegionICPConfig().rigid_mobility == 4.0
+    assert not (rigid & (moves > 6.0)).any()
+    assert rigid[moves <= 2.0].mean() > 0.8 and rigid.sum() > 3000
+    masked = region_masks(scan, RegionICPConfig(regions=("nose", "eyes-forehead"), expression_mask=6.0))
+    plain = region_masks(scan, RegionICPConfig(regions=("nose", "eyes-forehead")))
+    for name in ("nose", "eyes-forehead"):
+        assert (masked[name] & (moves > 8.0)).sum() <= 0.01 * masked[name].sum(), name
+        assert (plain[name] & (moves > 8.0)).sum() > 0.03 * plain[name].sum(), name  # what the mask takes out
+        assert not (masked[name] & ~plain[name]).any()
+
+
+def test_committee_discs_hold_the_points_within_their_radius():
+    """Each committee region (Faltemier et al. 2008) is the disc of `committee_radius` mm in x–y around its
+    lattice centre: the one on the nose tip holds the ~π · 25² cells of the 1 mm grid within 25 mm of it."""
+    face = model_face(0)
+    cfg = RegionICPConfig(regions=(), committee_spacing=20.0, committee_radius=25.0, committee_extent=20.0)
+    masks = region_masks(face, cfg)
+    tip = face.landmarks["nose_tip"]
+    assert list(masks) == cfg.region_names() and len(masks) == 5
+    for name, c in zip(cfg.region_names(), cfg.committee_centres()):
+        np.testing.assert_array_equal(masks[name], np.linalg.norm(face.points[:, :2] - tip[:2] - c, axis=1) <= 25.0)
+    assert abs(masks["disc(0,0)"].sum() - np.pi * 25.0**2) < 0.02 * np.pi * 25.0**2
+
+
 CHAPTER_CROP_MM = 80.0  # Mian et al.'s crop, the setting of the chapter's claims tested here (the default is wider)
 
 

@@ -57,6 +57,23 @@ def test_icp_probes_align_what_was_seen_unless_told_otherwise(faces):
     assert not np.array_equal(everything.prepare(completed).points, default.prepare(completed).points)
 
 
+def test_region_icp_probes_cut_what_was_seen_unless_told_otherwise(faces):
+    """Region ICP's regions of a completed probe are those of what its camera saw (`ICPConfig.probe_mirrored`),
+    as whole-face ICP's probe is; with probe_mirrored they take the mirrored points too."""
+    from facerec3d.matching.regions import RegionICPConfig, RegionICPMatcher
+
+    _, completed, _ = faces
+    seen_only = completed.subset(completed.provenance != MIRRORED)
+    default = RegionICPMatcher()
+    everything = RegionICPMatcher(RegionICPConfig(icp=ICPConfig(probe_mirrored=True)))
+    cut, seen, all_points = (m.prepare(f).regions for m, f in ((default, completed), (default, seen_only),
+                                                                (everything, completed)))
+    assert all(r is not None for r in cut)
+    for a, b in zip(cut, seen):
+        np.testing.assert_array_equal(a.points, b.points)
+    assert any(len(b.points) > len(a.points) for a, b in zip(cut, all_points))
+
+
 def test_provenance_survives_the_npz_round_trip(faces, tmp_path):
     from facerec3d.io import load_scan, save_scan
 
