@@ -27,12 +27,15 @@ def random_run(seed: int, n_subjects: int = 6, n_probes: int = 18):
     return S, probes, labels, gallery, neutral
 
 
-def make_run(path, seed, method):
+def make_run(path, seed, method, strangers=False):
+    """A run folder; `strangers`: its impostors also scored as strangers' claims, 0.5 higher (as a method
+    normalised over the gallery scores them without the probe's own entry)."""
     S, probes, labels, gallery, neutral = random_run(seed)
     metrics = {"method": method, "protocol": "test", "n_gallery": len(gallery),
                "timings": {"enrol_s": 1.5 + seed, "match_ms": np.float64(0.25)}}
     return write_run(path, S, probes, labels, gallery, metrics, n_failed=1,
-                     subsets={"neutral": neutral, "non-neutral": ~neutral}, subset_failures={"non-neutral": 1})
+                     subsets={"neutral": neutral, "non-neutral": ~neutral}, subset_failures={"non-neutral": 1},
+                     strangers=S + 0.5 if strangers else None)
 
 
 def test_write_run_creates_every_file(tmp_path):
@@ -160,7 +163,7 @@ def table_width_px(columns, rows, char_px=8.0, padding_px=18.0):
 
 def test_compare_tables_fit_a_1280_px_page_and_mcnemar_by_hand(tmp_path):
     for i, method in enumerate(("icp", "pca", "lda", "region-icp", "fusion")):
-        make_run(tmp_path / f"run-{method}", i, method)
+        make_run(tmp_path / f"run-{method}", i, method, strangers=method in ("region-icp", "fusion"))
     result = compare_runs([tmp_path / d for d in sorted(p.name for p in tmp_path.iterdir())], tmp_path / "cmp")
     assert "max-width:1200px" in (tmp_path / "cmp" / "compare.html").read_text()
     for heading, columns, rows in result["tables"]:
@@ -179,6 +182,23 @@ def test_compare_tables_fit_a_1280_px_page_and_mcnemar_by_hand(tmp_path):
     assert got[("a", "c")] == (20, 0, 10, pytest.approx(2 * 0.5**10), True)
     assert got[("b", "c")] == (20, 0, 10, pytest.approx(2 * 0.5**10), True)
     assert "differ (p < 0.05)" in (tmp_path / "cmp2" / "compare.md").read_text()
+
+
+def test_a_run_scored_also_as_strangers_claims_shows_both_eers_in_its_report_and_comparison(tmp_path):
+    """Impostors scored higher as strangers' claims: a higher EER beside the protocol's; genuine scores, counts and
+    identification as before; compare shows it beside the EER ("–" for a run without it)."""
+    plain = make_run(tmp_path / "a", 0, "icp")
+    both = make_run(tmp_path / "b", 0, "fusion", strangers=True)
+    st = both["strangers"]
+    assert {k: both[k] for k in ("rank1", "eer", "n_genuine")} == {k: plain[k] for k in ("rank1", "eer", "n_genuine")}
+    assert st["n_genuine"] == both["n_genuine"] and st["n_impostor"] == both["n_impostor"] and st["rank1"] is None
+    assert st["eer"] > both["eer"] and st["threshold_at_eer"] > both["threshold_at_eer"]
+    assert (tmp_path / "b" / "scores.strangers.txt").is_file() and not (tmp_path / "a" / "scores.strangers.txt").exists()
+    assert "all probes, impostors as strangers" in (tmp_path / "b" / "report.md").read_text()
+    result = compare_runs([tmp_path / "a", tmp_path / "b"], tmp_path / "cmp")
+    k = result["columns"].index("EER, strangers")
+    assert result["columns"][k - 1] == "EER" and result["rows"][0][k] == "–"
+    assert result["rows"][1][k] == f"{100 * st['eer']:.2f}%"
 
 
 def test_compare_runs_names_a_damaged_run_file(tmp_path):

@@ -141,6 +141,13 @@ def compare_runs(run_dirs: Sequence[str | Path], out_dir: str | Path, overwrite:
     columns = ["run", "FTA", *(c for _, c in SET_COLUMNS)]
     rows = [[i, format_value("fta_rate", r["metrics"].get("fta_rate")),
              *(with_interval(k, r["metrics"]) for k, _ in SET_COLUMNS)] for i, r in zip(ids, runs)]
+    if any(isinstance(r["metrics"].get("strangers"), dict) for r in runs):  # a method normalised over the gallery:
+        # its EER with impostors scored as strangers' claims, beside the protocol's (write_run's `strangers`)
+        columns.insert(columns.index("EER") + 1, "EER, strangers")
+        for row, r in zip(rows, runs):
+            strangers = r["metrics"].get("strangers")
+            row.insert(columns.index("EER") + 1,  # (the value only: the table fits a page; its report has the interval)
+                       format_value("eer", strangers.get("eer")) if isinstance(strangers, dict) else "–")
     tables = [("Runs", ["run", "label", "protocol", "probes", "gallery"],
                [[i, r["label"], str(r["metrics"].get("protocol", "–")), format_value("", r["metrics"].get("n_probes")),
                  format_value("", r["metrics"].get("n_gallery"))] for i, r in zip(ids, runs)], "wrap"),
