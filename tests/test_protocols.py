@@ -51,6 +51,10 @@ def test_roles_and_all_vs_all(tmp_path):
     assert every.gallery == every.probes == [0, 1, 2] and every.exclude_self
     with pytest.raises(ValueError, match="unknown protocol"):
         split(ds, "lfw")
+    from facerec3d.errors import InputError
+
+    with pytest.raises(InputError, match=r"^split takes a Dataset .*, not PosixPath"):  # was an AttributeError
+        split(tmp_path / "m.csv")
 
 
 def test_every_bosphorus_type_and_emotion_is_a_subset(tmp_path):

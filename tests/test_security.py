@@ -277,6 +277,10 @@ def test_encrypted_templates_need_their_key_and_reveal_no_geometry(tmp_path, mon
         GalleryStore(tmp_path / "g.sqlite")
     with pytest.raises(GalleryError, match="not the gallery's key"):
         GalleryStore(tmp_path / "g.sqlite", key=TemplateKey.make(tmp_path / "other"))
+    with GalleryStore(tmp_path / "g.sqlite", key=(tmp_path / "key").read_text().strip()) as s:  # its hex digits
+        assert [t.subject for t in s.templates()] == ["s0", "s1"]
+    with pytest.raises(GalleryError, match="^key: a TemplateKey or 64 hex digits, not a bytes$"):
+        GalleryStore(tmp_path / "g.sqlite", key=b"\0" * 32)
     monkeypatch.setenv(KEY_FILE_ENV, str(tmp_path / "key"))  # the key from the environment
     with GalleryStore(tmp_path / "g.sqlite") as s:
         back = s.templates()

@@ -146,7 +146,10 @@ def _exp3(dataset: Dataset) -> Split:
 
 
 def split(dataset: Dataset, protocol: str | None = None) -> Split:
-    """The gallery/probe split of a dataset under a protocol (default: `default_protocol`)."""
+    """The gallery/probe split of a dataset (`catalog.open_dataset`'s) under a protocol (default:
+    `default_protocol`)."""
+    if not isinstance(dataset, Dataset):
+        raise InputError(f"split takes a Dataset (facerec3d.datasets.catalog.open_dataset(path)), not {dataset!r:.60}")
     protocol = protocol or default_protocol(dataset)
     recs = dataset.records
     everything = set(range(len(recs)))

@@ -354,14 +354,19 @@ def _sqlite_errors(method):
 
 class GalleryStore:
     """A gallery store file; `create=True` makes a new one (mode 0600) when the file does not exist. `key`: the
-    templates' key (default: from the environment, see the module docstring); an encrypted store needs it."""
+    templates' key (default: from the environment, see the module docstring): a `TemplateKey`, or its 64 hex
+    digits; an encrypted store needs it."""
 
-    def __init__(self, path: str | PathLike, create: bool = False, key: TemplateKey | None = None):
+    def __init__(self, path: str | PathLike, create: bool = False, key: TemplateKey | str | None = None):
         self.path = Path(path)
         if not self.path.is_file() and not create:
             raise GalleryError(f"{self.path}: no such gallery (enrol into it first)")
         if not create and not self.path.stat().st_size:  # an empty file: not a store, and not made one by a reader
             raise GalleryError(f"{self.path}: an empty file, not a gallery (enrol into it first)")
+        if isinstance(key, str):
+            key = TemplateKey.from_text(key, "key")
+        elif key is not None and not isinstance(key, TemplateKey):
+            raise GalleryError(f"key: a TemplateKey or 64 hex digits, not a {type(key).__name__}")
         self.key = key if key is not None else TemplateKey.from_environment()
         if not self.path.exists():
             try:  # made here, so that SQLite's files take this mode: templates are for the owner only
