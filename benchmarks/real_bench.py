@@ -441,7 +441,7 @@ def score_file_system(path: Path, data: Path, gallery_rows: list, probe_rows: li
     Rows are paired with the manifest's probes by (real_id, probe_label), label = the frame's path within the
     dataset (as the manifest gives it), columns by claimed_id = gallery subject. A probe with no row failed to
     acquire, a gallery subject never claimed failed to enrol."""
-    from facerec3d.evaluation.scorefile import read_score_rows
+    from facerec3d.evaluation.scorefile import read_score_rows, strangers_file
 
     probe_at = {(r["subject"], Path(r["path"]).relative_to(data).as_posix()): i for i, r in enumerate(probe_rows)}
     gallery_at = {r["subject"]: j for j, r in enumerate(gallery_rows)}
@@ -458,11 +458,11 @@ def score_file_system(path: Path, data: Path, gallery_rows: list, probe_rows: li
         return S
 
     S = matrix(path)
-    strangers = path.with_name("scores.strangers.txt")  # evaluate's, beside its scores.txt (methods normalised
-    #   over the gallery: impostor pairs scored as strangers' claims)
+    strangers = strangers_file(path)  # evaluate's or fuse's, beside it (scores normalised over the gallery:
+    #   impostor pairs scored as strangers' claims)
     return {"S": np.where(np.isnan(S), -np.inf, S), "failed_probe": np.isnan(S).all(axis=1),
             "failed_gallery": np.isnan(S).all(axis=0),
-            "S_strangers": matrix(strangers) if path.name == "scores.txt" and strangers.is_file() else None}
+            "S_strangers": matrix(strangers) if strangers.is_file() else None}
 
 
 def run_method(method: str, data: Path, gallery_rows: list, probe_rows: list, out: Path, jobs: int,
@@ -690,7 +690,8 @@ def main(argv=None) -> int:
                          "crop_radius_mm = 80 with [resample] half_width_mm = 80 to measure another crop")
     ap.add_argument("--scores", default="",
                     help="LABEL=FILE,...: systems read from score files (bob4, e.g. `facerec3d fuse` of earlier runs' "
-                         "scores.txt), reported beside the methods, not run")
+                         "scores.txt), reported beside the methods, not run; the strangers' scores that evaluate and "
+                         "fuse write beside a file (scores.strangers.txt) give its EER strangers")
     ap.add_argument("--seeds", type=int, default=1,
                     help="run each method that draws ICP's probe points at random with seeds 0..N-1 and report "
                          "their mean (default 1: the default seed only)")

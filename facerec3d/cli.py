@@ -1563,23 +1563,27 @@ def fuse(scores, out, fmt, normalisation, rule, weights, top, cohort, overwrite)
     """Fuse several systems' score files (SCORES, two or more) into one, as the `fusion` method fuses its members
     (chapter §8.10): each probe's scores normalised over the gallery, then combined; evaluate it with `metrics`."""
     from facerec3d.errors import InputError, SettingsError
-    from facerec3d.evaluation.scorefile import fuse_score_files, write_scores
+    from facerec3d.evaluation.scorefile import fuse_score_files, strangers_file, write_scores
 
     try:
         w = tuple(float(x) for x in weights.split(",")) if weights.strip() else ()
     except ValueError:
         raise InputError(f"--weights {weights!r}: not comma-separated numbers") from None
-    if Path(out).exists() and not overwrite:
-        raise InputError(f"{out}: exists; give --overwrite to replace it")
+    side = strangers_file(out)
+    if (Path(out).exists() or side.exists()) and not overwrite:
+        raise InputError(f"{out if Path(out).exists() else side}: exists; give --overwrite to replace it")
     try:
         m, left_out = fuse_score_files(list(scores), fmt, rule, normalisation, w, top, cohort)
+        st, _ = fuse_score_files(list(scores), fmt, rule, normalisation, w, top, cohort, strangers=True)
     except SettingsError as e:  # a weight or --top out of range: named as the option
         raise InputError(f"--{e.field}: {e.reason}") from None
-    partial = Path(out).with_name(Path(out).name + ".partial")
-    n = write_scores(partial, m.S, m.probe_ids, m.probe_labels, m.gallery_ids)
-    partial.replace(out)
+    for path, matrix in ((side, st), (Path(out), m)):
+        partial = path.with_name(path.name + ".partial")
+        n = write_scores(partial, matrix.S, matrix.probe_ids, matrix.probe_labels, matrix.gallery_ids)
+        partial.replace(path)
     click.echo(f"wrote {out}: {n} comparisons of {len(m.probe_labels)} probes, {rule} of {normalisation} scores of "
-               f"{len(scores)} files" + (f"; {left_out} comparisons missing from some file left out" if left_out else ""))
+               f"{len(scores)} files" + (f"; {left_out} comparisons missing from some file left out" if left_out else "")
+               + f"; and {side}: the impostor pairs scored as strangers' claims")
 
 
 @main.command()

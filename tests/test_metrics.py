@@ -381,6 +381,17 @@ def test_fused_score_files_are_the_fusion_of_their_rows(tmp_path):
     np.testing.assert_allclose(read_score_matrix(tmp_path / "f5.txt").S, plain - 0.5 * others, rtol=1e-12)
     hits = lambda S: np.mean(S.argmax(axis=1) == np.arange(16) % 8)
     assert hits(f.S) >= max(hits(A), hits(B))  # on this draw the fusion is right where either is
+    # beside it, the impostor pairs fused without the probe's own person (strangers' claims)
+    st = read_score_matrix(tmp_path / "f.strangers.txt")
+    assert list(st.probe_labels) == labels and np.isnan(st.S[truth.astype(bool)]).all()
+    for i in range(16):
+        others = np.flatnonzero(~truth[i].astype(bool))
+        np.testing.assert_allclose(st.S[i, others], fuse(np.stack([A[i, others], B[i, others]]), "sum", "z-score")[0],
+                                   rtol=1e-12)
+    assert run("--out", str(tmp_path / "f.txt")).exit_code == 2  # both files there: --overwrite needed
+    (tmp_path / "f.txt").unlink()
+    r = run("--out", str(tmp_path / "f.txt"))
+    assert r.exit_code == 2 and "f.strangers.txt: exists" in r.output, r.output
 
     run("--out", str(tmp_path / "w.txt"), "--rule", "weighted-sum", "--weights", "3,1")
     expected = np.stack([fuse(np.stack([A[i], B[i]]), "weighted-sum", "z-score", (3.0, 1.0))[0] for i in range(16)])

@@ -30,7 +30,7 @@ import numpy as np
 from facerec3d.evaluation.metrics import (BOOTSTRAP, CI_LEVEL, FAR_LEVELS, FPIR_LEVELS, cmc, det, open_set, roc,
                                           search, split_scores, summarize)
 from facerec3d.evaluation.plots import plot_cmc, plot_det, plot_roc, plot_score_histograms
-from facerec3d.evaluation.scorefile import write_scores
+from facerec3d.evaluation.scorefile import strangers_file, write_scores
 
 #: The files of a run folder (write_run's, and evaluate's settings and model): a folder holding any of them holds a
 #: run, and a new run into it removes them first, so that none is left over from another method.
@@ -456,7 +456,7 @@ def write_run(
     out.mkdir(parents=True, exist_ok=True)
     write_scores(out / "scores.txt", S, probe_ids, probe_labels, gallery_ids)
     if strangers is not None:
-        write_scores(out / "scores.strangers.txt", strangers, probe_ids, probe_labels, gallery_ids)
+        write_scores(strangers_file(out / "scores.txt"), strangers, probe_ids, probe_labels, gallery_ids)
     (out / "metrics.json").write_text(text + "\n", encoding="utf-8")
     _write_probes(out / "probes.csv", S, probe_ids, probe_labels, gallery_ids, tiebreak, failed, mateless)
     curves = {name: _curves(S[m], probe_ids[m], gallery_ids, tb(m), mateless[m]) for name, m in {"all probes": every, **groups}.items()}

@@ -232,9 +232,16 @@ def read_score_matrix(path: str | Path, fmt: str = "bob4", higher_is_better: boo
     return ScoreMatrix(S, subjects, labels, templates[:, 0], templates[:, 1])
 
 
+def strangers_file(path: str | Path) -> Path:
+    """The file beside a score file holding its impostor pairs scored as strangers' claims (`scores.txt`:
+    `scores.strangers.txt`), as `evaluate` and `fuse` write it for scores normalised over the gallery."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}.strangers{path.suffix}")
+
+
 def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str = "sum",
                      normalisation: str = "z-score", weights: Sequence[float] = (),
-                     top: int = 0, cohort: float = 0.0) -> tuple[ScoreMatrix, int]:
+                     top: int = 0, cohort: float = 0.0, strangers: bool = False) -> tuple[ScoreMatrix, int]:
     """Score-level fusion of several systems' score files (chapter §8.10; `matching.normalisation.fuse`, what the
     `fusion` method computes from its members' scores): each probe's scores of each file normalised over the
     gallery templates it was compared with, then combined by `rule`, and `cohort` × the best other person's fused
@@ -244,7 +251,12 @@ def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str =
     (a comparison is fused only where every file has it; a score of −inf, a match not found, counts as that
     probe's worst). Raises InputError naming the file when the files disagree on a probe's subject, and the fusion
     method's errors for its settings (SettingsError naming `weights` or `top` out of range, InputError otherwise:
-    weights with a rule that ignores them too)."""
+    weights with a rule that ignores them too). `strangers`: each probe's impostor pairs fused over the gallery
+    without the probe's person, as a stranger's claim meets it (`matching.base.scores_over`; its own person's
+    comparisons left out of the result, not counted as missing). Exact where the files' own scores do not depend
+    on the gallery (icp, the embedding); a file of a method normalised over the gallery itself (region ICP) keeps
+    the normalisation it was written with (on rap3df-2019 the default's EER for strangers over all 80 people reads
+    11.5 % so, 11.6 % from the fusion method)."""
     from facerec3d.matching.fusion import FusionConfig
     from facerec3d.matching.normalisation import fuse, minus_best_other
 
@@ -282,13 +294,15 @@ def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str =
                          "nothing to fuse" if alone is not None else
                          f"{', '.join(map(str, paths))}: no comparison is in every file (each shares some with "
                          f"{paths[0]}, but not the same ones): nothing to fuse")
+    left_out = sum(int((~np.isnan(m.S)).sum()) for m in mats) - len(mats) * int(made.sum())
     fused = np.full(made.shape, np.nan)
     people = np.asarray(first.gallery_ids)
+    if strangers:
+        made &= people.astype(str)[None, :] != np.asarray(first.probe_ids).astype(str)[:, None]
     for i in np.flatnonzero(made.any(axis=1)):
         cols = np.flatnonzero(made[i])
         score, tiebreak = fuse(stack[:, i, cols], rule, normalisation, weights, top)
         score = minus_best_other(score, people[cols], cohort)
         # consensus: whole votes, ties broken by the Borda count (below one vote), as the matchers rank
         fused[i, cols] = score if tiebreak is None else score + tiebreak / (tiebreak.max() + 1.0)
-    left_out = sum(int((~np.isnan(m.S)).sum()) for m in mats) - len(mats) * int(made.sum())
     return ScoreMatrix(fused, first.probe_ids, first.probe_labels, first.gallery_ids, first.template_labels), left_out
