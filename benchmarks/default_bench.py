@@ -93,6 +93,11 @@ def main(argv=None) -> int:
                     help="preprocessing settings (TOML/JSON, any subset, as `facerec3d preprocess --config`), e.g. "
                          "[symmetry] mode = \"mirror\"; the run folders get the file's name")
     args = ap.parse_args(argv)
+    if args.real is not None:  # read before the runs, not after them
+        try:
+            real_results = json.loads(args.real.read_text())["results"]["held-out"]
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            ap.error(f"--real {args.real}: not a real_bench.json ({type(e).__name__}: {str(e)[:120]})")
     config = PreprocessConfig.load(args.preprocess_config) if args.preprocess_config else PreprocessConfig()
     runs = "runs" if args.preprocess_config is None else f"runs-{args.preprocess_config.stem}"
     specs = method_specs(args.methods)
@@ -112,7 +117,7 @@ def main(argv=None) -> int:
             print(f"{name:18s} {label:28s} rank-1 all {100 * m['rank1_all']:5.1f} %  EER {100 * m['eer']:5.1f} %",
                   flush=True)
     if args.real:
-        real = json.loads(args.real.read_text())["results"]["held-out"]
+        real = real_results
         for label in table:
             if label in real:
                 table[label]["rap3df held-out"] = real[label]["rank1_all"]
@@ -121,6 +126,7 @@ def main(argv=None) -> int:
     print("\nNO REAL DATA: give --real (a default chosen without real data is a guess)" if not args.real else "")
     for title, values, worst in (("Rank-1 over all probes (%)", table, min), ("EER (%)", eers, max)):
         print(f"\n{title}\n" + "\n".join(render(values, columns, worst)))
+    print(f"\nruns (each with its report.html) in {args.data / runs}")
     return 0
 
 

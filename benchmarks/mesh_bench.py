@@ -109,6 +109,7 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "mesh_bench.md").write_text("\n".join(lines) + "\n", encoding="utf-8")
     (args.out / "mesh_bench.json").write_text(json.dumps(rows, indent=1), encoding="utf-8")
+    print(f"wrote {args.out / 'mesh_bench.md'} and {args.out / 'mesh_bench.json'}")
     return 0
 
 

@@ -799,6 +799,9 @@ def main(argv=None) -> int:
                                for n, s in systems.items()}}
     (args.out / "real_bench.json").write_text(json.dumps(report, indent=1, default=str), encoding="utf-8")
     print(f"\nwrote {args.out / 'real_bench.json'} and {args.out / 'real_bench.md'}")
+    if failures and not systems:  # every system asked for failed: nothing was measured
+        print(f"real_bench: every method failed ({'; '.join(failures)})", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -86,6 +86,8 @@ def time_files(tree: Path | None, files: list[Path], intrinsics: Path | None = N
     already preprocessed (`.npz`), only read and enrolled (preprocessing 0)."""
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1",
                PYTHONPATH=str(tree or ROOT))
+    files = [Path(f).resolve() for f in files]  # the child runs elsewhere (cwd below): paths as the caller meant them
+    intrinsics = Path(intrinsics).resolve() if intrinsics else None
     out = subprocess.run([sys.executable, "-c", _CHILD, json.dumps([str(f) for f in files]), str(intrinsics or ""),
                           "faces" if faces else "scans"],
                          env=env, capture_output=True, text=True, cwd=tempfile.gettempdir())
