@@ -414,9 +414,10 @@ def write_run(
     pairs = {name: np.asarray(mask) for name, mask in (masks or {}).items()}
     mated = probe_ids[:, None] == gallery_ids[None, :]
     if strangers is not None:
-        strangers = np.where(mated, np.nan, np.asarray(strangers, dtype=float))
+        strangers = np.asarray(strangers, dtype=float)
         if strangers.shape != S.shape:
             raise ValueError(f"strangers: need a {S.shape} matrix, got {strangers.shape}")
+        strangers = np.where(mated, np.nan, strangers)
     for name, mask in pairs.items():
         if mask.dtype != bool or mask.shape != S.shape:
             raise ValueError(f"mask {name!r}: need {S.shape} booleans, got {mask.dtype} {mask.shape}")
