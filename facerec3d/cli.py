@@ -1573,8 +1573,7 @@ def fuse(scores, out, fmt, normalisation, rule, weights, top, cohort, overwrite)
     if (Path(out).exists() or side.exists()) and not overwrite:
         raise InputError(f"{out if Path(out).exists() else side}: exists; give --overwrite to replace it")
     try:
-        m, left_out = fuse_score_files(list(scores), fmt, rule, normalisation, w, top, cohort)
-        st, _ = fuse_score_files(list(scores), fmt, rule, normalisation, w, top, cohort, strangers=True)
+        m, left_out, st = fuse_score_files(list(scores), fmt, rule, normalisation, w, top, cohort)
     except SettingsError as e:  # a weight or --top out of range: named as the option
         raise InputError(f"--{e.field}: {e.reason}") from None
     for path, matrix in ((side, st), (Path(out), m)):

@@ -241,19 +241,19 @@ def strangers_file(path: str | Path) -> Path:
 
 def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str = "sum",
                      normalisation: str = "z-score", weights: Sequence[float] = (),
-                     top: int = 0, cohort: float = 0.0, strangers: bool = False) -> tuple[ScoreMatrix, int]:
+                     top: int = 0, cohort: float = 0.0) -> tuple[ScoreMatrix, int, ScoreMatrix]:
     """Score-level fusion of several systems' score files (chapter §8.10; `matching.normalisation.fuse`, what the
     `fusion` method computes from its members' scores): each probe's scores of each file normalised over the
     gallery templates it was compared with, then combined by `rule`, and `cohort` × the best other person's fused
     score taken off (`normalisation.minus_best_other`; 0: the plain combination); InputError when the files share
-    none. Probes
-    are matched by label, templates by (subject, label). Returns the fused matrix and the number of comparisons left out because some file lacks them
-    (a comparison is fused only where every file has it; a score of −inf, a match not found, counts as that
-    probe's worst). Raises InputError naming the file when the files disagree on a probe's subject, and the fusion
-    method's errors for its settings (SettingsError naming `weights` or `top` out of range, InputError otherwise:
-    weights with a rule that ignores them too). `strangers`: each probe's impostor pairs fused over the gallery
-    without the probe's person, as a stranger's claim meets it (`matching.base.scores_over`; its own person's
-    comparisons left out of the result, not counted as missing). Exact where the files' own scores do not depend
+    none. Probes are matched by label, templates by (subject, label). Returns the fused matrix, the number of
+    comparisons left out because some file lacks them (a comparison is fused only where every file has it; a score
+    of −inf, a match not found, counts as that probe's worst), and the strangers' matrix: each probe's impostor
+    pairs fused over the gallery without the probe's person, as a stranger's claim meets it
+    (`matching.base.scores_over`; its own person's comparisons NaN). Raises InputError naming the file when the
+    files disagree on a probe's subject, and the fusion method's errors for its settings (SettingsError naming
+    `weights` or `top` out of range, InputError otherwise: weights with a rule that ignores them too). The
+    strangers' scores are exact where the files' own scores do not depend
     on the gallery (icp, the embedding); a file of a method normalised over the gallery itself (region ICP) keeps
     the normalisation it was written with (on rap3df-2019 the default's EER for strangers over all 80 people reads
     11.5 % so, 11.6 % from the fusion method)."""
@@ -295,14 +295,17 @@ def fuse_score_files(paths: Sequence[str | Path], fmt: str = "bob4", rule: str =
                          f"{', '.join(map(str, paths))}: no comparison is in every file (each shares some with "
                          f"{paths[0]}, but not the same ones): nothing to fuse")
     left_out = sum(int((~np.isnan(m.S)).sum()) for m in mats) - len(mats) * int(made.sum())
-    fused = np.full(made.shape, np.nan)
     people = np.asarray(first.gallery_ids)
-    if strangers:
-        made &= people.astype(str)[None, :] != np.asarray(first.probe_ids).astype(str)[:, None]
-    for i in np.flatnonzero(made.any(axis=1)):
-        cols = np.flatnonzero(made[i])
-        score, tiebreak = fuse(stack[:, i, cols], rule, normalisation, weights, top)
-        score = minus_best_other(score, people[cols], cohort)
-        # consensus: whole votes, ties broken by the Borda count (below one vote), as the matchers rank
-        fused[i, cols] = score if tiebreak is None else score + tiebreak / (tiebreak.max() + 1.0)
-    return ScoreMatrix(fused, first.probe_ids, first.probe_labels, first.gallery_ids, first.template_labels), left_out
+
+    def fused_over(made: np.ndarray) -> ScoreMatrix:
+        fused = np.full(made.shape, np.nan)
+        for i in np.flatnonzero(made.any(axis=1)):
+            cols = np.flatnonzero(made[i])
+            score, tiebreak = fuse(stack[:, i, cols], rule, normalisation, weights, top)
+            score = minus_best_other(score, people[cols], cohort)
+            # consensus: whole votes, ties broken by the Borda count (below one vote), as the matchers rank
+            fused[i, cols] = score if tiebreak is None else score + tiebreak / (tiebreak.max() + 1.0)
+        return ScoreMatrix(fused, first.probe_ids, first.probe_labels, first.gallery_ids, first.template_labels)
+
+    others = people.astype(str)[None, :] != np.asarray(first.probe_ids).astype(str)[:, None]
+    return fused_over(made), left_out, fused_over(made & others)
