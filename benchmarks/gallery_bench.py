@@ -195,7 +195,8 @@ def main() -> None:
         who = np.linspace(0, args.distinct, args.probes, endpoint=False).astype(int)  # spread over the faces
         probes = [frontal_face(s, pose_deg=3.0, shift_mm=3.0, noise_mm=0.3, seed=1000 + s) for s in who]
     print(f"{args.distinct} distinct faces: made in {make_s:.0f} s, enrolled at {enrol_core_s * 1e3:.0f} ms/face "
-          f"(core time), {np.mean([t.nbytes for t in distinct]) / 1024:.0f} KiB per template; {args.probes} probes; "
+          f"(core time, the workers already started; their first enrolments' JIT compilation or cache load "
+          f"included), {np.mean([t.nbytes for t in distinct]) / 1024:.0f} KiB per template; {args.probes} probes; "
           f"cascade: {cascade}")
     if args.against:
         against_release(args.against, faces, args.preprocess_scans)

@@ -136,7 +136,9 @@ def main() -> None:
     for name, m, r, tr in rows:
         print(f"{name:38s} {m:9.2f} {r:10.3f} {tr:13.3f}")
     print("(facerec3d: gallery structures built at enrolment, probe normals and subset in prepare; "
-          "Open3D builds its k-d tree in each call)")
+          "Open3D builds its k-d tree in each call; steady state: each match timed after one untimed call, so JIT "
+          "compilation and cold caches are left out; enrol / prepare: medians over the faces, the first holding "
+          "the JIT)")
     for name, m, *_ in rows[2:]:
         print(f"speed-up ({name} ms / facerec3d point-to-point ms): {m / p2p[1]:.0f}×")
 
@@ -152,7 +154,8 @@ def main() -> None:
     s, (scores, _) = timed(lambda: matcher.scores(probe, gallery), 3)
     rank = int(np.sum(scores > scores[0])) + 1
     print(f"gallery of {n_gallery}: enrolment {enrol_s / n_gallery * 1e3:.0f} ms/face, {size / 2**20:.0f} MiB in all; "
-          f"scores() of one probe {s * 1e3:.0f} ms ({s / n_gallery * 1e3:.2f} ms/template); genuine rank {rank}")
+          f"scores() of one probe {s * 1e3:.0f} ms ({s / n_gallery * 1e3:.2f} ms/template); genuine rank {rank} "
+          "(steady state: kernels compiled above, scores() warmed on 2 templates first)")
 
 
 if __name__ == "__main__":

@@ -101,6 +101,9 @@ def main(argv=None) -> int:
         lines.append(f"| {name} | {r['fta']:.1%} | {r['nose_median_mm']:.2f} mm | {r['nose_within_10mm']:.1%} | "
                      f"{r['nose_max_mm']:.1f} mm | {r['rank1']:.1%} | {100 * (r['rank1'] - ref):+.1f} points | "
                      f"{r['s_per_scan']:.2f} |")
+    lines += ["", "s per scan: the median preprocessing time of the format's scans, steady state (the kernels compiled "
+              "on one range image before any timing; a mesh kernel's own first compilation is one scan of the "
+              f"{2 * args.subjects}, not the median)"]
     missed = [f"{name}: scans {r['missed']}" for name, r in rows.items() if r["missed"]]
     lines += ["", "Scans not found or with the nose more than 10 mm off (k: subject k, or k - subjects' probe; "
               "its frame is seeded 1000 × spacing + 2k + 1 for a mesh, + 0 for points): "

@@ -105,7 +105,8 @@ def main() -> None:
           f"within 10 mm {np.mean(nose < 10):.1%}")
     print(f"residual rotation to frontal: median {np.median(rot):.2f} deg, max {rot.max():.2f} deg")
     print(f"spikes removed: {caught / injected:.1%}; good points removed: {lost / good:.3%}")
-    print(f"time per scan: median {np.median(times) * 1000:.0f} ms (one core)")
+    print(f"time per scan: median {np.median(times) * 1000:.0f} ms (one core; the first scan holds the kernels' JIT "
+          f"compilation or cache load: one of {len(times)}, not the median)")
     print("stage shares: " + ", ".join(f"{k} {v / total:.0%}" for k, v in sorted(shares.items(), key=lambda kv: -kv[1])))
     if args.preprocess_config:
         against_defaults(args, kept, config)

@@ -296,7 +296,8 @@ def main() -> None:
                     run_level(url, key, probes[kind], args.jobs, 2 * args.jobs, mode, kind == "preprocessed")
             print(f"\n{'mode':>17} {'upload':>12} {'clients':>7} {'requests':>8} {'p50 s':>7} {'p95 s':>7} "
                   f"{'p99 s':>7} "
-                  f"{'req/s':>7} {'core-s/req':>10} {'rank-1':>6}  service: preprocess / match (median ms)", flush=True)
+                  f"{'req/s':>7} {'core-s/req':>10} {'rank-1':>6}  service: preprocess / match (median ms); steady "
+                  "state: after an untimed warm-up round per mode", flush=True)
             for mode in modes:
                 for kind in kinds:
                     for c in clients:
@@ -313,8 +314,9 @@ def main() -> None:
             proc.terminate()
             proc.wait(60)
 
-    print(f"\nCLI identify per call ({args.cli_calls} calls per mode, --jobs {args.jobs}, raw probe scans):",
-          flush=True)
+    print(f"\nCLI identify per call ({args.cli_calls} calls per mode, --jobs {args.jobs}, raw probe scans; each call "
+          "a fresh process: its start, imports and workers are in the time, as a user's call pays them; Numba's "
+          "on-disk cache warm):", flush=True)
     for mode in modes:
         times, core_s = cli_calls(gallery, probes["raw"], args.cli_calls, args.jobs, mode)
         results["cli"][mode] = {"calls_s": times, "mean_s": float(np.mean(times)),
