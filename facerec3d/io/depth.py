@@ -65,12 +65,14 @@ class Intrinsics:
     encoding: str = "plain"  # "plain": a pixel is depth; "depth16": Android's DEPTH16 (range and confidence bits)
     min_confidence: float = 1 / 7  # depth16: pixels the sensor is less confident of are left out (0 %: none)
 
-    def __post_init__(self) -> None:  # (from_dict and load say which file and field; this guards the API's own)
+    def __post_init__(self) -> None:  # the values' checks, wherever they come from (from_dict names the file)
         for name in ("fx", "fy", "cx", "cy", "depth_unit_mm", "min_confidence"):
             if not math.isfinite(getattr(self, name)):
                 raise ValueError(f"intrinsics: {name} must be a finite number, not {getattr(self, name)!r}")
-        if self.fx <= 0 or self.fy <= 0 or self.depth_unit_mm <= 0:
-            raise ValueError("intrinsics: fx, fy and depth_unit_mm must be positive")
+        if self.fx <= 0 or self.fy <= 0:
+            raise ValueError("intrinsics: fx and fy must be positive")
+        if self.depth_unit_mm <= 0:
+            raise ValueError("intrinsics: the depth unit must be positive")
 
     @classmethod
     def from_dict(cls, data: dict, source: str | Path = "intrinsics") -> "Intrinsics":
@@ -82,8 +84,6 @@ class Intrinsics:
             if name not in data:
                 raise ScanFormatError(source, f"intrinsics lack {name!r} (need fx, fy, cx, cy in pixels)")
             values[name] = _number(data[name], source, name)
-        if values["fx"] <= 0 or values["fy"] <= 0:
-            raise ScanFormatError(source, "intrinsics: fx and fy must be positive")
         for name in set(data) - set(INTRINSICS_FIELDS):  # other fields (a sensor's name, notes) are the file's own;
             #                                                   a misspelt one of ours is not
             if near := difflib.get_close_matches(str(name), INTRINSICS_FIELDS, n=1, cutoff=0.85):
@@ -96,8 +96,6 @@ class Intrinsics:
                                               "millimetres, or the metres, of one stored depth unit)")
         elif "depth_scale_m" in data:
             values["depth_unit_mm"] = 1000.0 * _number(data["depth_scale_m"], source, "depth_scale_m")
-        if values.get("depth_unit_mm", 1.0) <= 0:
-            raise ScanFormatError(source, "intrinsics: the depth unit must be positive")
         if "invalid" in data:
             v = _number(data["invalid"], source, "invalid")
             if v != int(v):
@@ -117,7 +115,10 @@ class Intrinsics:
             values["min_confidence"] = _number(data["min_confidence"], source, "min_confidence")
             if not 0.0 <= values["min_confidence"] <= 1.0:
                 raise ScanFormatError(source, "intrinsics: 'min_confidence' must lie in [0, 1]")
-        return cls(**values)
+        try:
+            return cls(**values)
+        except ValueError as e:  # (__post_init__'s checks of the values)
+            raise ScanFormatError(source, str(e)) from None
 
     @classmethod
     def load(cls, path: str | Path) -> "Intrinsics":
